@@ -1,0 +1,37 @@
+"""jaxelastic: differentiable finite-element elasticity in JAX.
+
+Write a strain-energy density ``psi(F, params) -> scalar``; get the first Piola–Kirchhoff
+stress, nodal forces, Hessian-vector products, element Hessians and implicit solvers by
+autodiff, on linear triangles (2D) and tetrahedra (3D).
+
+The library never changes JAX's global configuration: enable float64 yourself with
+``jax.config.update("jax_enable_x64", True)`` (tests, scripts and the CLI do).
+"""
+
+from . import elements as elements
+from . import kinematics as kinematics
+from . import materials as materials
+from . import mesh as mesh
+from . import reference as reference
+from .energy import assemble as assemble
+from .energy import element_forces as element_forces
+from .energy import element_hessians as element_hessians
+from .energy import energy as energy
+from .energy import energy_densities as energy_densities
+from .energy import first_piola as first_piola
+from .energy import forces as forces
+from .energy import hvp as hvp
+from .energy import project_psd as project_psd
+from .kinematics import deformation_gradients as deformation_gradients
+from .kinematics import polar as polar
+from .kinematics import svd_rv as svd_rv
+from .materials import Lame as Lame
+from .materials import lame as lame
+from .mesh import Mesh as Mesh
+from .mesh import MeshError as MeshError
+from .mesh import box as box
+from .mesh import cook_membrane as cook_membrane
+from .mesh import from_arrays as from_arrays
+from .mesh import rectangle as rectangle
+
+__version__ = "0.1.0"

@@ -1,0 +1,229 @@
+"""Kinematics: deformation gradients, strains, and a rotation-variant polar decomposition.
+
+Functions of a single deformation gradient take an unbatched ``(d, d)`` array (d = 2 or 3)
+and are meant to be used inside ψ; :func:`deformation_gradients` maps positions on a mesh
+to ``(n_cells, n_q, d, d)``.
+
+The rotation-variant SVD/polar decomposition (Irving, Teran & Fedkiw 2004; Stomakhin et al.
+2012) keeps ``U, V ∈ SO(d)`` and puts a reflection into the smallest singular value, which
+becomes negative when ``det F < 0``. A plain ``jnp.linalg.svd`` has NaN *second* derivatives
+at ``F = I``, at scaled rotations and at repeated singular values; :func:`polar` and
+:func:`trace_S` have custom JVPs whose derivatives of every order are finite there:
+
+* ``dR = R·[ω]×`` with ``(tr S·I − S) ω = axial(RᵀdF − dFᵀR)`` in 3D (the polar-rotation
+  derivative; singular only when two signed singular values sum to zero, a measure-zero
+  set that includes a reflection ``diag(1, 1, −1)``, where the system is regularised);
+* in 2D ``R`` has the closed form ``(a, b)/√(a²+b²)`` with ``a = F₀₀+F₁₁, b = F₁₀−F₀₁``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = [
+    "deformation_gradients",
+    "det",
+    "cofactor",
+    "green_strain",
+    "small_strain",
+    "corotated_strain",
+    "polar",
+    "polar_rotation",
+    "trace_S",
+    "svd_rv",
+]
+
+
+def deformation_gradients(x: jax.Array, mesh) -> jax.Array:
+    """F at every quadrature point: ``F = Σ_a x_a ⊗ ∇N_a`` (``= Ds·Dm⁻¹`` for P1).
+
+    Args:
+        x: ``(n_nodes, dim)`` current positions [length].
+        mesh: a :class:`~jaxelastic.mesh.Mesh`.
+
+    Returns:
+        ``(n_cells, n_q, dim, dim)`` deformation gradients (dimensionless).
+    """
+    xe = x[mesh.cells]  # (c, k, d)
+    return jnp.einsum("cka,cqkb->cqab", xe, mesh.dN)
+
+
+def det(F: jax.Array) -> jax.Array:
+    """Determinant J of a 2×2 or 3×3 matrix, as a polynomial (smooth derivatives)."""
+    if F.shape == (2, 2):
+        return F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]
+    if F.shape == (3, 3):
+        return (
+            F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
+            - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
+            + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0])
+        )
+    raise ValueError(f"det expects a 2x2 or 3x3 matrix, got shape {F.shape}")
+
+
+def cofactor(F: jax.Array) -> jax.Array:
+    """Cofactor matrix ``cof F = ∂J/∂F = J·F⁻ᵀ`` (defined for every F, also singular)."""
+    if F.shape == (2, 2):
+        return jnp.array([[F[1, 1], -F[1, 0]], [-F[0, 1], F[0, 0]]])
+    if F.shape == (3, 3):
+        c0 = jnp.cross(F[:, 1], F[:, 2])
+        c1 = jnp.cross(F[:, 2], F[:, 0])
+        c2 = jnp.cross(F[:, 0], F[:, 1])
+        return jnp.stack([c0, c1, c2], axis=1)
+    raise ValueError(f"cofactor expects a 2x2 or 3x3 matrix, got shape {F.shape}")
+
+
+def green_strain(F: jax.Array) -> jax.Array:
+    """Green–Lagrange strain ``E = ½(FᵀF − I)``."""
+    return 0.5 * (F.T @ F - jnp.eye(F.shape[0], dtype=F.dtype))
+
+
+def small_strain(F: jax.Array) -> jax.Array:
+    """Small (infinitesimal) strain ``ε = ½(F + Fᵀ) − I``."""
+    return 0.5 * (F + F.T) - jnp.eye(F.shape[0], dtype=F.dtype)
+
+
+def corotated_strain(F: jax.Array) -> jax.Array:
+    """Corotated strain ``S − I`` with ``F = R·S`` the rotation-variant polar decomposition."""
+    _, S = polar(F)
+    return S - jnp.eye(F.shape[0], dtype=F.dtype)
+
+
+def _skew3(w):
+    z = jnp.zeros((), w.dtype)
+    return jnp.array([[z, -w[2], w[1]], [w[2], z, -w[0]], [-w[1], w[0], z]])
+
+
+def _axial3(A):
+    """Axial vector of the skew part's double: for ``A = [a]× ``, returns ``a``."""
+    return jnp.array([A[2, 1], A[0, 2], A[1, 0]])
+
+
+def _svd_rv_primal(F):
+    U, s, Vt = jnp.linalg.svd(F)
+    V = Vt.T
+    d = F.shape[0]
+    flip_u = jnp.linalg.det(U) < 0
+    flip_v = jnp.linalg.det(V) < 0
+    last = jnp.arange(d) == d - 1
+    U = jnp.where(flip_u & last[None, :], -U, U)
+    V = jnp.where(flip_v & last[None, :], -V, V)
+    sign = jnp.where(flip_u ^ flip_v, -1.0, 1.0).astype(F.dtype)
+    s = jnp.where(last, sign * s, s)
+    return U, s, V
+
+
+def _rotation_2d(F):
+    a = F[0, 0] + F[1, 1]
+    b = F[1, 0] - F[0, 1]
+    r2 = a * a + b * b
+    ok = r2 > jnp.finfo(F.dtype).tiny
+    r = jnp.sqrt(jnp.where(ok, r2, 1.0))
+    c = jnp.where(ok, a / r, 1.0)
+    s = jnp.where(ok, b / r, 0.0)
+    return jnp.array([[c, -s], [s, c]]), jnp.where(ok, r, 0.0)
+
+
+@jax.custom_jvp
+def _rotation_3d(F):
+    U, _, V = _svd_rv_primal(F)
+    return U @ V.T
+
+
+@_rotation_3d.defjvp
+def _rotation_3d_jvp(primals, tangents):
+    (F,), (dF,) = primals, tangents
+    R = _rotation_3d(F)
+    S = R.T @ F
+    S = 0.5 * (S + S.T)
+    trS = jnp.trace(S)
+    M = trS * jnp.eye(3, dtype=F.dtype) - S  # eigenvalues σi+σj ≥ 0
+    # regularise the measure-zero set σi + σj = 0 (e.g. an exact reflection)
+    delta = 1e-12 * jnp.maximum(jnp.abs(trS), 1.0)
+    G = R.T @ dF
+    w = jnp.linalg.solve(M + delta * jnp.eye(3, dtype=F.dtype), _axial3(G - G.T))
+    return R, R @ _skew3(w)
+
+
+def polar_rotation(F: jax.Array) -> jax.Array:
+    """Rotation ``R ∈ SO(d)`` of the rotation-variant polar decomposition ``F = R·S``.
+
+    ``R = U·Vᵀ`` of the rotation-variant SVD: it maximises ``tr(RᵀF)`` over SO(d), so for
+    ``det F < 0`` it stays a rotation and S carries the reflection. Derivatives of all orders
+    are finite at F = I, scaled rotations and repeated singular values.
+    """
+    if F.shape == (2, 2):
+        return _rotation_2d(F)[0]
+    if F.shape == (3, 3):
+        return _rotation_3d(F)
+    raise ValueError(f"polar expects a 2x2 or 3x3 matrix, got shape {F.shape}")
+
+
+def polar(F: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Rotation-variant polar decomposition ``F = R·S``.
+
+    Returns:
+        ``(R, S)``: R ∈ SO(d); S = RᵀF symmetric, with eigenvalues the signed singular
+        values (the smallest negative when ``det F < 0``).
+    """
+    R = polar_rotation(F)
+    S = R.T @ F
+    return R, 0.5 * (S + S.T)
+
+
+@jax.custom_jvp
+def _trace_S_3d(F):
+    return jnp.trace(_rotation_3d(F).T @ F)
+
+
+@_trace_S_3d.defjvp
+def _trace_S_3d_jvp(primals, tangents):
+    (F,), (dF,) = primals, tangents
+    R = _rotation_3d(F)
+    return jnp.trace(R.T @ F), jnp.sum(R * dF)
+
+
+def trace_S(F: jax.Array) -> jax.Array:
+    """``tr S = Σ σ̂ᵢ``, the sum of the signed singular values; ``∂ tr S/∂F = R``.
+
+    Energies that depend on F through ``I_C = ‖F‖²``, ``J`` and ``tr S`` only (fixed
+    corotated, corotated, ARAP) get exact, finite derivatives of every order this way.
+    """
+    if F.shape == (2, 2):
+        return _rotation_2d(F)[1]
+    if F.shape == (3, 3):
+        return _trace_S_3d(F)
+    raise ValueError(f"trace_S expects a 2x2 or 3x3 matrix, got shape {F.shape}")
+
+
+@jax.custom_jvp
+def svd_rv(F: jax.Array):
+    """Rotation-variant SVD ``F = U·diag(σ̂)·Vᵀ`` with ``U, V ∈ SO(d)``.
+
+    Returns:
+        ``(U, sigma, V)``; sigma sorted descending in magnitude, the last one negative
+        when ``det F < 0``.
+
+    First derivatives are finite everywhere (the ``1/(σⱼ² − σᵢ²)`` terms of dU, dV are set
+    to zero where singular values coincide). Second derivatives of a ψ written through
+    ``sigma`` are *not* exact at repeated singular values: write such energies with
+    :func:`trace_S`, :func:`polar` or invariants instead (the built-in models do).
+    """
+    return _svd_rv_primal(F)
+
+
+@svd_rv.defjvp
+def _svd_rv_jvp(primals, tangents):
+    (F,), (dF,) = primals, tangents
+    U, s, V = _svd_rv_primal(F)
+    P = U.T @ dF @ V
+    ds = jnp.diagonal(P)
+    si, sj = s[:, None], s[None, :]
+    den = sj**2 - si**2
+    scale = jnp.maximum(jnp.max(jnp.abs(s)) ** 2, jnp.finfo(F.dtype).tiny)
+    ok = jnp.abs(den) > 1e-12 * scale
+    den_safe = jnp.where(ok, den, 1.0)
+    wu = jnp.where(ok, (sj * P + si * P.T) / den_safe, 0.0)
+    wv = jnp.where(ok, (si * P + sj * P.T) / den_safe, 0.0)
+    return (U, s, V), (U @ wu, ds, V @ wv)
