@@ -8,11 +8,17 @@ The library never changes JAX's global configuration: enable float64 yourself wi
 ``jax.config.update("jax_enable_x64", True)`` (tests, scripts and the CLI do).
 """
 
+from . import dynamics as dynamics
 from . import elements as elements
+from . import io as io
 from . import kinematics as kinematics
+from . import loads as loads
 from . import materials as materials
 from . import mesh as mesh
+from . import potential as potential
 from . import reference as reference
+from . import solvers as solvers
+from .dynamics import Integrator as Integrator
 from .energy import assemble as assemble
 from .energy import element_forces as element_forces
 from .energy import element_hessians as element_hessians
@@ -22,9 +28,12 @@ from .energy import first_piola as first_piola
 from .energy import forces as forces
 from .energy import hvp as hvp
 from .energy import project_psd as project_psd
+from .io import read_mesh as read_mesh
+from .io import write_vtu as write_vtu
 from .kinematics import deformation_gradients as deformation_gradients
 from .kinematics import polar as polar
 from .kinematics import svd_rv as svd_rv
+from .loads import Dirichlet as Dirichlet
 from .materials import Lame as Lame
 from .materials import lame as lame
 from .mesh import Mesh as Mesh
@@ -33,5 +42,11 @@ from .mesh import box as box
 from .mesh import cook_membrane as cook_membrane
 from .mesh import from_arrays as from_arrays
 from .mesh import rectangle as rectangle
+from .potential import Potential as Potential
+from .solvers.newton import NewtonResult as NewtonResult
+from .solvers.newton import NewtonSettings as NewtonSettings
+from .solvers.newton import SolveError as SolveError
+from .solvers.newton import Status as Status
+from .solvers.newton import solve as solve
 
 __version__ = "0.1.0"

@@ -1,0 +1,439 @@
+"""Mesh files in and out: meshio reading with named sets, VTU output, ParaView time series.
+
+* :func:`read_mesh` reads any meshio-readable file (Gmsh ``.msh`` v2/v4 ascii/binary, VTU,
+  XDMF, Abaqus ``.inp``, …) holding linear triangles (2D) or tetrahedra (3D) and returns a
+  :class:`MeshData`: the validated :class:`~jaxelastic.mesh.Mesh` plus named point, cell and
+  boundary-facet sets taken from Gmsh physical groups and meshio point/cell sets.
+* :func:`write_vtu` writes one state (rest geometry + ``displacement``, optionally J,
+  Green strain, first Piola stress, von Mises stress and ψ per cell); :class:`TimeSeriesWriter`
+  writes ``basename_0000.vtu``… and a ParaView ``.pvd`` collection.
+
+Every file is written atomically (temporary file in the target directory, then
+``os.replace``): a reader never sees a half-written file and a crash leaves no partial
+output. Outputs are overwritten by default (a time series rewrites its own files); pass
+``overwrite=False`` to refuse, and ``protect=[...]`` (paths or :class:`MeshData`) to refuse
+ever writing over an input mesh.
+
+meshio is imported lazily; importing this module has no side effects.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import os
+import tempfile
+import xml.etree.ElementTree as ET
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .energy import cell_params_axes, first_piola
+from .kinematics import deformation_gradients, det, green_strain
+from .mesh import Mesh, MeshError, boundary_facets, from_arrays
+
+__all__ = ["MeshIOError", "MeshData", "read_mesh", "write_vtu", "cell_fields", "TimeSeriesWriter"]
+
+_VOLUME = {2: "triangle", 3: "tetra"}  # volume cell type per dimension
+_FACET = {2: "line", 3: "triangle"}  # boundary facet type per dimension
+
+
+class MeshIOError(MeshError):
+    """A mesh file cannot be read or written; the message names the file and the reason."""
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshData:
+    """A mesh read from a file, with its named sets (all indices refer to ``mesh``).
+
+    Attributes:
+        mesh: the validated rest mesh.
+        point_sets: name → ``(m,)`` sorted node indices (tagged vertices; in 3D also the
+            nodes of tagged lines; meshio point sets).
+        cell_sets: name → ``(m,)`` sorted indices into ``mesh.cells``.
+        facet_sets: name → ``(m, dim)`` node indices of tagged facets (lines in 2D,
+            triangles in 3D); facets on the boundary are oriented with outward normals
+            exactly as :func:`~jaxelastic.mesh.boundary_facets` returns them.
+        node_map: ``(n_nodes,)`` index in the file of each kept node (unused nodes, e.g.
+            Gmsh geometry points, are pruned).
+        source: absolute path of the file read.
+    """
+
+    mesh: Mesh
+    point_sets: dict
+    cell_sets: dict
+    facet_sets: dict
+    node_map: np.ndarray
+    source: str
+
+
+def _read_raw(path: str, file_format: str | None):
+    """Call meshio's reader directly: ``meshio.read`` calls ``sys.exit`` on a parse error."""
+    import meshio
+
+    if not os.path.exists(path):
+        raise MeshIOError(f"cannot read mesh {path!r}: no such file")
+    if os.path.isdir(path):
+        raise MeshIOError(f"cannot read mesh {path!r}: it is a directory")
+    if file_format is None:
+        name, formats = os.path.basename(path).lower(), []
+        for ext, fmts in meshio.extension_to_filetypes.items():
+            if name.endswith(ext) and len(name) > len(ext):
+                formats += [f for f in fmts if f not in formats]
+        if not formats:
+            raise MeshIOError(
+                f"cannot read mesh {path!r}: unknown file extension; meshio reads "
+                f"{', '.join(sorted(meshio.extension_to_filetypes))} (or pass file_format=)"
+            )
+    else:
+        formats = [file_format]
+    readers = getattr(getattr(meshio, "_helpers", None), "reader_map", {})
+    errors = []
+    for fmt in formats:
+        try:
+            return readers[fmt](path) if fmt in readers else meshio.read(path, file_format=fmt)
+        except ImportError as e:
+            errors.append(f"{fmt} needs the optional package {e.name!r} (pip install {e.name})")
+        except SystemExit:
+            errors.append(f"meshio could not parse it as {fmt}")
+        except Exception as e:  # noqa: BLE001 — any parser failure is reported with the path
+            why = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+            errors.append(f"meshio could not parse it as {fmt} ({why})")
+    raise MeshIOError(f"cannot read mesh {path!r}: " + "; ".join(errors))
+
+
+def _tagged_groups(raw):
+    """Yield ``(name, block index, local cell indices)`` for every physical group / cell set."""
+    blocks = raw.cells
+    phys = raw.cell_data.get("gmsh:physical")
+    if phys is not None and len(phys) == len(blocks):
+        names = {}
+        for k, v in raw.field_data.items():
+            v = np.asarray(v).ravel()
+            if v.size == 2:  # gmsh: name -> [tag, dim]
+                names[(int(v[0]), int(v[1]))] = k
+        for i, b in enumerate(blocks):
+            tags = np.asarray(phys[i]).astype(np.int64).ravel()
+            for t in np.unique(tags[tags > 0]):  # tag 0 = "in no physical group"
+                yield names.get((int(t), b.dim), str(int(t))), i, np.flatnonzero(tags == t)
+    for name, per_block in raw.cell_sets.items():
+        if name.startswith("gmsh:") or len(per_block) != len(blocks):
+            continue
+        for i, idx in enumerate(per_block):
+            if idx is not None and np.size(idx) > 0:
+                yield name, i, np.asarray(idx, dtype=np.int64).ravel()
+
+
+def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> MeshData:
+    """Read a triangle (2D) or tetrahedron (3D) mesh file with its named sets.
+
+    Args:
+        path: the mesh file; the format is deduced from the extension unless
+            ``file_format`` (a meshio format name, e.g. ``"gmsh"``) is given.
+        orient: passed to :func:`~jaxelastic.mesh.from_arrays` (``"fix"`` reorients
+            clockwise/left-handed cells with a warning, ``"refuse"`` raises).
+
+    Returns:
+        A :class:`MeshData`. Volume cells of all blocks are concatenated in file order.
+        Lower-dimensional cells carrying a physical group or cell set become facet sets
+        (lines in 2D, triangles in 3D) or point sets (vertices; lines in 3D); untagged ones
+        are ignored. Unnamed Gmsh physical groups are named by their tag (``"7"``). Points
+        stored with 3 coordinates and constant z make a 2D mesh.
+
+    Raises:
+        MeshIOError: missing/unreadable file, unknown extension, no or unsupported volume
+            cells (quad, hex, triangle6, mixed types), a triangle mesh that is not planar,
+            or invalid geometry (the :class:`~jaxelastic.mesh.MeshError` message, prefixed
+            with the path).
+    """
+    path = os.path.abspath(os.fspath(path))
+    raw = _read_raw(path, file_format)
+    blocks = raw.cells
+    dims = {b.type: b.dim for b in blocks}
+    vol_dim = max(dims.values(), default=-1)
+    vol_types = sorted(t for t, d in dims.items() if d == vol_dim)
+    if vol_dim < 2:
+        raise MeshIOError(f"{path}: no triangle or tetra cells (cell types found: {sorted(dims)})")
+    if vol_types != [_VOLUME[vol_dim]]:
+        raise MeshIOError(
+            f"{path}: unsupported volume cell types {vol_types}; jaxelastic reads meshes of "
+            "linear triangles (2D) or linear tetrahedra (3D) only, one type per mesh"
+        )
+    vol = [i for i, b in enumerate(blocks) if b.dim == vol_dim]
+    offset = dict(zip(vol, np.cumsum([0] + [len(blocks[i].data) for i in vol]), strict=False))
+    cells = np.concatenate([np.asarray(blocks[i].data, dtype=np.int64) for i in vol])
+    n_file = len(raw.points)
+    if cells.size and (cells.min() < 0 or cells.max() >= n_file):
+        raise MeshIOError(f"{path}: cells reference nodes outside [0, {n_file})")
+    node_map = np.unique(cells)
+    new = np.full(n_file, -1, dtype=np.int64)
+    new[node_map] = np.arange(node_map.size)
+    points = np.asarray(raw.points, dtype=np.float64)[node_map]
+    if vol_dim == 2 and points.shape[1] == 3:
+        extent = np.ptp(points[:, :2], axis=0).max()
+        if np.ptp(points[:, 2]) > 1e-10 * extent:
+            raise MeshIOError(
+                f"{path}: triangle cells with varying z coordinates: a surface mesh in 3D "
+                "is not a solid (use tetrahedra for 3D bodies)"
+            )
+        points = points[:, :2]
+    try:
+        mesh = from_arrays(points, new[cells], _VOLUME[vol_dim], orient=orient)
+    except MeshError as e:
+        raise MeshIOError(f"{path}: {e}") from None
+
+    acc: dict[str, dict[str, list]] = {"point": {}, "cell": {}, "facet": {}}
+    for name, i, local in _tagged_groups(raw):
+        b = blocks[i]
+        if b.dim == vol_dim:
+            acc["cell"].setdefault(name, []).append(offset[i] + local)
+            continue
+        conn = new[np.asarray(b.data, dtype=np.int64)[local]]
+        if b.type == _FACET[vol_dim]:
+            acc["facet"].setdefault(name, []).append(conn[(conn >= 0).all(axis=1)])
+        elif b.dim == 0 or (vol_dim == 3 and b.dim == 1):
+            acc["point"].setdefault(name, []).append(conn.ravel()[conn.ravel() >= 0])
+    for name, idx in raw.point_sets.items():
+        idx = new[np.asarray(idx, dtype=np.int64).ravel()]
+        acc["point"].setdefault(name, []).append(idx[idx >= 0])
+
+    point_sets = {k: np.unique(np.concatenate(v)) for k, v in acc["point"].items()}
+    cell_sets = {k: np.unique(np.concatenate(v)) for k, v in acc["cell"].items()}
+    bf = boundary_facets(mesh) if acc["facet"] else None
+    facet_sets = {k: _orient_facets(np.concatenate(v), bf) for k, v in acc["facet"].items()}
+    return MeshData(mesh, point_sets, cell_sets, facet_sets, node_map, path)
+
+
+def _orient_facets(facets: np.ndarray, boundary: np.ndarray) -> np.ndarray:
+    """Deduplicate ``facets`` and replace each boundary one by its outward-oriented copy."""
+    _, first = np.unique(np.sort(facets, axis=1), axis=0, return_index=True)
+    facets = facets[np.sort(first)]
+    keys = np.sort(np.concatenate([boundary, facets]), axis=1)
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    lookup = np.full(inv.max() + 1, -1)
+    lookup[inv[: len(boundary)]] = np.arange(len(boundary))
+    match = lookup[inv[len(boundary) :]]
+    out = facets.copy()
+    out[match >= 0] = boundary[match[match >= 0]]
+    return out
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _cell_fields(psi, x, mesh, params):
+    F = deformation_gradients(x, mesh)[:, 0]  # (c, d, d) at the first quadrature point
+    c, d = F.shape[:2]
+    ax = cell_params_axes(params, mesh.n_cells)
+    P = jax.vmap(first_piola(psi), in_axes=(0, ax))(F, params)  # (c, d, d)
+    W = jax.vmap(psi, in_axes=(0, ax))(F, params)
+    J = jax.vmap(det)(F)
+    sigma = P @ jnp.swapaxes(F, 1, 2) / J[:, None, None]  # Cauchy σ = P Fᵀ / J
+    s3 = jnp.zeros((c, 3, 3), F.dtype).at[:, :d, :d].set(sigma)  # 2D: σ_zz = 0
+    dev = s3 - jnp.trace(s3, axis1=1, axis2=2)[:, None, None] / 3.0 * jnp.eye(3)[None]
+    return {
+        "J": J,
+        "green_strain": jax.vmap(green_strain)(F).reshape(c, d * d),
+        "stress_P": P.reshape(c, d * d),
+        "von_mises": jnp.sqrt(1.5 * jnp.sum(dev * dev, axis=(1, 2))),
+        "energy_density": W,
+    }
+
+
+def cell_fields(psi, x, mesh: Mesh, params) -> dict[str, np.ndarray]:
+    """Per-cell output fields at the first quadrature point (jitted; mesh is an argument).
+
+    Args:
+        psi: strain-energy density ``psi(F, params)`` [energy / rest measure].
+        x: ``(n_nodes, dim)`` current positions [length].
+        mesh: the rest mesh.
+        params: material parameters (shared scalars or per-cell leaves).
+
+    Returns:
+        ``J`` ``(n_cells,)``: det F; ``green_strain`` ``(n_cells, d²)``: E = ½(FᵀF − I)
+        row-major; ``stress_P`` ``(n_cells, d²)``: first Piola P [Pa]; ``von_mises``
+        ``(n_cells,)``: of the Cauchy stress σ = P Fᵀ/J [Pa] (2D: with σ_zz = 0, i.e. the
+        in-plane stress state); ``energy_density`` ``(n_cells,)``: ψ [Pa].
+    """
+    out = _cell_fields(psi, jnp.asarray(x, dtype=mesh.points.dtype), mesh, params)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _pad3(a: np.ndarray) -> np.ndarray:
+    """Pad ``(n, 2)`` vectors with a zero z component (ParaView wants 3-vectors)."""
+    return np.pad(a, ((0, 0), (0, 1))) if a.ndim == 2 and a.shape[1] == 2 else a
+
+
+def _same_file(a: str, b: str) -> bool:
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
+
+
+def _write_atomic(path: str, write) -> None:
+    """``write(tmp)`` to a temporary file next to ``path``, then ``os.replace`` it."""
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
+def write_vtu(
+    path,
+    mesh: Mesh,
+    x=None,
+    *,
+    point_data=None,
+    cell_data=None,
+    psi=None,
+    params=None,
+    protect=(),
+    overwrite: bool = True,
+) -> None:
+    """Write one state of ``mesh`` as a VTU file (rest geometry + ``displacement``).
+
+    Args:
+        path: output ``.vtu`` file.
+        x: ``(n_nodes, dim)`` current positions [length]; ``None`` means the rest shape.
+            Stored as point data ``displacement = x − rest`` (3 components, also in 2D):
+            use ParaView's *Warp By Vector* to see the deformed body.
+        point_data, cell_data: extra arrays, leading axis ``n_nodes`` resp. ``n_cells``;
+            ``(n_nodes, 2)`` point vectors are padded to 3 components.
+        psi, params: when both are given, add the :func:`cell_fields` (J, green_strain,
+            stress_P, von_mises, energy_density).
+        protect: paths (or :class:`MeshData`) that must never be overwritten, e.g. the
+            mesh file the data came from.
+        overwrite: replace an existing ``path`` (default, what a time series needs).
+
+    Raises:
+        MeshIOError: ``path`` is protected, or exists and ``overwrite=False``.
+        ValueError: wrong array shapes, a name clash with a built-in field, or only one
+            of ``psi``/``params``.
+    """
+    import meshio
+
+    path = os.fspath(path)
+    for p in protect:
+        p = p.source if isinstance(p, MeshData) else os.fspath(p)
+        if _same_file(path, p):
+            raise MeshIOError(f"refusing to write {path!r}: it is the protected input {p!r}")
+    if not overwrite and os.path.exists(path):
+        raise MeshIOError(f"refusing to write {path!r}: file exists (pass overwrite=True)")
+    if (psi is None) != (params is None):
+        raise ValueError("pass both psi and params to write stress and strain fields")
+    rest = np.asarray(mesh.points, dtype=np.float64)
+    x = rest if x is None else np.asarray(x, dtype=np.float64)
+    if x.shape != rest.shape:
+        raise ValueError(f"x must have shape {rest.shape} like mesh.points, got {x.shape}")
+    pdata = {"displacement": _pad3(x - rest)}
+    cdata = cell_fields(psi, x, mesh, params) if psi is not None else {}
+    for extra, out, n, what in (
+        (point_data, pdata, mesh.n_nodes, "n_nodes"),
+        (cell_data, cdata, mesh.n_cells, "n_cells"),
+    ):
+        for k, v in (extra or {}).items():
+            v = np.asarray(v)
+            if k in out:
+                raise ValueError(f"data name {k!r} clashes with a built-in output field")
+            if v.ndim == 0 or v.shape[0] != n:
+                raise ValueError(f"{k!r} must have leading axis {what}={n}, got {v.shape}")
+            out[k] = _pad3(v) if out is pdata else v
+    m = meshio.Mesh(
+        _pad3(rest),
+        [(mesh.element_type.meshio_type, np.asarray(mesh.cells))],
+        point_data=pdata,
+        cell_data={k: [v] for k, v in cdata.items()},
+    )
+    _write_atomic(path, lambda tmp: meshio.write(tmp, m, file_format="vtu"))
+
+
+class TimeSeriesWriter:
+    """Write ``directory/basename_0000.vtu``, … and the ParaView collection ``basename.pvd``.
+
+    The ``.pvd`` is rewritten (atomically) after every step, so a series interrupted by a
+    crash is still readable; :meth:`close` (or leaving the ``with`` block) writes it once
+    more and forbids further writes. The directory is created if needed; files of an
+    earlier series with the same basename are overwritten.
+
+    Args:
+        directory: output directory.
+        basename: file stem (no path separators).
+        mesh: the rest mesh.
+        psi, params: optional material, to add :func:`cell_fields` to every step.
+    """
+
+    def __init__(self, directory, basename: str, mesh: Mesh, psi=None, params=None):
+        if not basename or os.sep in basename or (os.altsep and os.altsep in basename):
+            raise ValueError(f"basename must be a plain file stem, got {basename!r}")
+        if (psi is None) != (params is None):
+            raise ValueError("pass both psi and params to write stress and strain fields")
+        self.directory = os.fspath(directory)
+        self.basename, self.mesh, self.psi, self.params = basename, mesh, psi, params
+        self.steps: list[tuple[float, str]] = []  # (time, file name relative to directory)
+        self._closed = False
+        os.makedirs(self.directory, exist_ok=True)
+
+    @property
+    def pvd_path(self) -> str:
+        return os.path.join(self.directory, f"{self.basename}.pvd")
+
+    def write(self, t, x, *, params=None, point_data=None, cell_data=None, **extra) -> str:
+        """Write the state at time ``t`` [time] with positions ``x`` ``(n_nodes, dim)``.
+
+        ``params`` overrides the writer's parameters for this step; ``extra`` arrays are
+        point data if their leading axis is ``n_nodes``, cell data if it is ``n_cells``
+        (use ``point_data=``/``cell_data=`` when both counts are equal). Returns the path.
+        """
+        if self._closed:
+            raise ValueError("TimeSeriesWriter is closed")
+        t = float(t)
+        if not np.isfinite(t):
+            raise ValueError(f"time must be finite, got {t}")
+        point_data, cell_data = dict(point_data or {}), dict(cell_data or {})
+        nn, nc = self.mesh.n_nodes, self.mesh.n_cells
+        for k, v in extra.items():
+            n = np.shape(v)[0] if np.ndim(v) else None
+            if (n == nn) == (n == nc):
+                raise ValueError(
+                    f"cannot tell whether {k!r} of shape {np.shape(v)} is point or cell data "
+                    f"(n_nodes={nn}, n_cells={nc}); pass it in point_data= or cell_data="
+                )
+            (point_data if n == nn else cell_data)[k] = v
+        name = f"{self.basename}_{len(self.steps):04d}.vtu"
+        path = os.path.join(self.directory, name)
+        p = self.params if params is None else params
+        write_vtu(
+            path, self.mesh, x, point_data=point_data, cell_data=cell_data, psi=self.psi, params=p
+        )
+        self.steps.append((t, name))
+        self._write_pvd()
+        return path
+
+    def _write_pvd(self) -> None:
+        root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
+        coll = ET.SubElement(root, "Collection")
+        for t, name in self.steps:
+            ET.SubElement(coll, "DataSet", timestep=repr(t), group="", part="0", file=name)
+        ET.indent(root)
+        tree = ET.ElementTree(root)
+        _write_atomic(self.pvd_path, lambda tmp: tree.write(tmp, "utf-8", xml_declaration=True))
+
+    def close(self) -> None:
+        """Write the final ``.pvd`` collection; further writes raise."""
+        if not self._closed:
+            self._write_pvd()
+            self._closed = True
+
+    def __enter__(self) -> TimeSeriesWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

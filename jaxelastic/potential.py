@@ -1,0 +1,164 @@
+"""The objective the solvers minimise: elastic energy + loads + (for dynamics) inertia.
+
+``Π(x) = E(x) − f_extᵀx + w/2 Σ_a m_a ‖x_a − x̃_a‖² + c_M/2 Σ_a m_a ‖x_a − x_n,a‖²``
+
+* statics: only the first two terms (no mass term is compiled in);
+* backward Euler: ``w = 1/h²``, ``x̃ = x_n + h v_n``; BDF2: ``w = 1/(2h/3)²`` with its x̃
+  (Kim & Eberle 2022, §"Time integration"; REFERENCES "Integrators");
+* optional mass-proportional Rayleigh damping ``c_M = α/h`` and stiffness-proportional
+  ``c_K/2 (x − x_n)ᵀ K(x_n) (x − x_n)``, ``c_K = β/h``.
+
+A :class:`Potential` is a frozen pytree whose optional parts are ``None`` when a scene does
+not need them; jit specialises on that structure, so a scene without gravity compiles no
+load term and statics no inertia.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from .energy import element_hessians, energy, forces, hvp
+from .mesh import Mesh
+
+__all__ = [
+    "Potential",
+    "value",
+    "gradient",
+    "hessian_vp",
+    "node_hessian_blocks",
+    "elastic_element_hessians",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class Potential:
+    """Everything but the unknown positions that defines Π(x).
+
+    Attributes:
+        mesh: the rest mesh.
+        params: material parameter pytree (shared scalars or per-cell fields).
+        f_ext: ``(n_nodes, dim)`` dead external nodal forces, or None.
+        mass: ``(n_nodes,)`` lumped masses, or None (statics).
+        x_tilde: ``(n_nodes, dim)`` inertial predictor, or None.
+        inertia_weight: scalar w (1/h² for backward Euler), or None.
+        x_prev: ``(n_nodes, dim)`` positions at the start of the step (damping), or None.
+        mass_damping: scalar c_M, or None.
+        stiffness_damping: scalar c_K, or None.
+        psi: the strain-energy density (static).
+    """
+
+    mesh: Mesh
+    params: Any
+    f_ext: jax.Array | None = None
+    mass: jax.Array | None = None
+    x_tilde: jax.Array | None = None
+    inertia_weight: jax.Array | None = None
+    x_prev: jax.Array | None = None
+    mass_damping: jax.Array | None = None
+    stiffness_damping: jax.Array | None = None
+    psi: Callable = dataclasses.field(default=None, metadata=dict(static=True))
+
+    def replace(self, **kw) -> Potential:
+        return dataclasses.replace(self, **kw)
+
+
+jax.tree_util.register_dataclass(
+    Potential,
+    data_fields=[
+        "mesh",
+        "params",
+        "f_ext",
+        "mass",
+        "x_tilde",
+        "inertia_weight",
+        "x_prev",
+        "mass_damping",
+        "stiffness_damping",
+    ],
+    meta_fields=["psi"],
+)
+
+
+def value(pot: Potential, x: jax.Array) -> jax.Array:
+    """Π(x), a scalar [energy]; +inf/NaN propagate (the line search treats them as +inf)."""
+    v = energy(pot.psi, x, pot.mesh, pot.params)
+    if pot.f_ext is not None:
+        v = v - jnp.sum(pot.f_ext * x)
+    if pot.mass is not None:
+        dx = x - pot.x_tilde
+        v = v + 0.5 * pot.inertia_weight * jnp.sum(pot.mass[:, None] * dx * dx)
+    if pot.mass_damping is not None:
+        dx = x - pot.x_prev
+        v = v + 0.5 * pot.mass_damping * jnp.sum(pot.mass[:, None] * dx * dx)
+    if pot.stiffness_damping is not None:
+        dx = x - pot.x_prev
+        Kdx = hvp(pot.psi, pot.x_prev, dx, pot.mesh, pot.params)
+        v = v + 0.5 * pot.stiffness_damping * jnp.sum(dx * Kdx)
+    return v
+
+
+def gradient(pot: Potential, x: jax.Array) -> jax.Array:
+    """∂Π/∂x, ``(n_nodes, dim)`` [force]."""
+    g = -forces(pot.psi, x, pot.mesh, pot.params)
+    if pot.f_ext is not None:
+        g = g - pot.f_ext
+    if pot.mass is not None:
+        g = g + pot.inertia_weight * pot.mass[:, None] * (x - pot.x_tilde)
+    if pot.mass_damping is not None:
+        g = g + pot.mass_damping * pot.mass[:, None] * (x - pot.x_prev)
+    if pot.stiffness_damping is not None:
+        g = g + pot.stiffness_damping * hvp(
+            pot.psi, pot.x_prev, x - pot.x_prev, pot.mesh, pot.params
+        )
+    return g
+
+
+def _mass_diag(pot: Potential):
+    """Diagonal (per-node) mass contribution to the Hessian, ``(n_nodes,)`` or None."""
+    w = None
+    if pot.mass is not None:
+        w = pot.inertia_weight * pot.mass
+    if pot.mass_damping is not None:
+        w = w + pot.mass_damping * pot.mass
+    return w
+
+
+def hessian_vp(pot: Potential, x: jax.Array, v: jax.Array) -> jax.Array:
+    """``(∂²Π/∂x²)·v``, ``(n_nodes, dim)``, matrix-free."""
+    Hv = hvp(pot.psi, x, v, pot.mesh, pot.params)
+    w = _mass_diag(pot)
+    if w is not None:
+        Hv = Hv + w[:, None] * v
+    if pot.stiffness_damping is not None:
+        Hv = Hv + pot.stiffness_damping * hvp(pot.psi, pot.x_prev, v, pot.mesh, pot.params)
+    return Hv
+
+
+def node_hessian_blocks(pot: Potential, Ke: jax.Array) -> jax.Array:
+    """Diagonal ``dim×dim`` blocks of the Hessian per node, ``(n_nodes, dim, dim)``.
+
+    Args:
+        Ke: element Hessians ``(n_cells, k·dim, k·dim)`` of the elastic energy (the
+            stiffness-damping term, if any, is approximated by the same blocks).
+    """
+    mesh = pot.mesh
+    c, k, d = mesh.n_cells, mesh.cells.shape[1], mesh.dim
+    K4 = Ke.reshape(c, k, d, k, d)
+    blocks = K4[:, jnp.arange(k), :, jnp.arange(k), :]  # (k, c, d, d)
+    blocks = jnp.swapaxes(blocks, 0, 1).reshape(c * k, d, d)
+    flat = jnp.concatenate([blocks, jnp.zeros((1, d, d), Ke.dtype)])
+    B = flat[mesh.incidence].sum(axis=1)  # (n, d, d)
+    w = _mass_diag(pot)
+    if w is not None:
+        B = B + w[:, None, None] * jnp.eye(d, dtype=Ke.dtype)
+    return B
+
+
+def elastic_element_hessians(pot: Potential, x: jax.Array, project: bool) -> jax.Array:
+    """Element Hessians of the elastic energy at x, ``(n_cells, k·dim, k·dim)``."""
+    return element_hessians(pot.psi, x, pot.mesh, pot.params, project=project)

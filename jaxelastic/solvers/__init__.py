@@ -1,0 +1,1 @@
+"""Nonlinear and linear solvers (Newton, CG, sparse host linear algebra)."""

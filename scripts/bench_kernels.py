@@ -1,0 +1,461 @@
+"""Throughput of the per-element kernels and of the assembly, in 2D and 3D.
+
+Measures, for each material model, dimension (``rectangle`` triangles / ``box`` tets) and
+mesh size (about 10k, 100k and 1M elements), in float64 on the default JAX device:
+
+* ``energy``            total energy (``jaxelastic.energy``);
+* ``forces``            autodiff forces (``jaxelastic.forces``: P = ∂ψ/∂F by autodiff,
+                        element forces, incidence-table gather assembly);
+* ``forces_handP``      the same machinery with P from ``reference.HAND_P[model]`` (injected
+                        as the gradient of a ``custom_vjp`` pseudo-ψ, so only P changes);
+* ``forces_handP_cof``  neo-Hookean only: a hand P written with ``cof F / J`` instead of
+                        ``jnp.linalg.inv`` (the reference P's LAPACK inverse is slow on CPU);
+* ``elem_forces``       ``element_forces`` alone, ``(n_cells, k, d)``: gather of x + arithmetic,
+                        no assembly (the "per-element arithmetic alone");
+* ``elem_kernel``       the element kernel on pre-gathered ``x[cells]`` (pure arithmetic);
+* ``forces_scatter``    element forces + unsorted ``.at[].add`` scatter;
+* ``forces_segsum``     element forces + ``jax.ops.segment_sum`` on sorted indices
+                        (host-precomputed permutation);
+* ``forces_jaxgrad``    ``-jax.grad(energy)`` (JAX's own transpose/scatter path);
+* ``hvp``               Hessian-vector product; ``elem_hess`` / ``elem_hess_psd`` element
+                        Hessians without / with PSD projection;
+* ``asm_gather`` / ``asm_scatter`` / ``asm_segsum``  the assembly alone of a given
+                        ``(n_cells, k, d)`` array (model independent, measured once per mesh).
+
+Every kernel is ``jax.jit``-ed with the mesh (and all other arrays) as *arguments* — never
+closed over, so nothing is constant-folded; the compiled HLO size is reported as evidence.
+Compile time (lower + compile) is reported separately; run time is the median (and min) of
+several warm repeats after one warm-up call, synchronised with ``jax.block_until_ready``.
+Throughput is elements per second. Ratios reported: ``forces / forces_handP`` (target
+≤ 1.1) and ``forces / elem_forces`` (target ≤ 1.25). The machine load average is recorded:
+other processes on a small machine make timings noisy (compare the min column then).
+
+Usage::
+
+    python scripts/bench_kernels.py [--sizes small|medium|all] [--models neo_hookean,...]
+                                    [--dims 2,3] [--out DIR]
+
+``--sizes small`` is 10k elements only, ``medium`` 10k and 100k, ``all`` adds 1M. A kernel
+whose run time, extrapolated from the previous size, exceeds ``--budget`` seconds per
+measurement is skipped with the reason printed (e.g. PSD projection at 1M).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxelastic as je
+from jaxelastic import kinematics, materials, reference
+from jaxelastic.energy import _element_force, cell_params_axes
+
+SIZES = {"small": (10_000,), "medium": (10_000, 100_000), "all": (10_000, 100_000, 1_000_000)}
+
+
+# --------------------------------------------------------------------------- meshes
+
+
+def make_mesh(dim: int, target: int) -> je.Mesh:
+    """Structured mesh of the unit square/cube with about ``target`` elements."""
+    if dim == 2:
+        n = max(1, round((target / 2) ** 0.5))
+        return je.rectangle(n, n)
+    n = max(1, round((target / 6) ** (1 / 3)))
+    return je.box(n, n, n)
+
+
+def deformed(mesh: je.Mesh, seed: int = 0) -> tuple[jax.Array, jax.Array]:
+    """A smooth stretch plus small noise (no inverted element) and a random direction v."""
+    rng = np.random.default_rng(seed)
+    X = np.asarray(mesh.points)
+    d = X.shape[1]
+    h = 1.0 / round(mesh.n_nodes ** (1 / d))  # ≈ grid spacing of the unit square/cube
+    A = np.eye(d) + 0.1 * np.triu(np.ones((d, d)))
+    x = X @ A.T + 0.05 * h * rng.standard_normal(X.shape)
+    v = rng.standard_normal(X.shape)
+    return jnp.asarray(x), jnp.asarray(v)
+
+
+# --------------------------------------------------------------------------- kernels
+
+
+def psi_with_P(psi, P):
+    """A pseudo-ψ whose autodiff gradient is exactly ``P`` (to reuse the energy machinery)."""
+
+    @jax.custom_vjp
+    def f(F, p):
+        return psi(F, p)
+
+    def fwd(F, p):
+        return psi(F, p), (P(F, p), p)
+
+    def bwd(res, g):
+        PF, p = res
+        return g * PF, jax.tree_util.tree_map(jnp.zeros_like, p)
+
+    f.defvjp(fwd, bwd)
+    return f
+
+
+def P_neo_hookean_cof(F, p):
+    """Neo-Hookean ``P = μ(F − F⁻ᵀ) + λ ln J F⁻ᵀ`` with ``F⁻ᵀ = cof F / J`` (no LAPACK)."""
+    J = kinematics.det(F)
+    FinvT = kinematics.cofactor(F) / J
+    return p.mu * (F - FinvT) + p.lam * jnp.log(J) * FinvT
+
+
+FAST_HAND_P = {"neo_hookean": P_neo_hookean_cof}
+
+
+def scatter_add(mesh, pe):
+    """Unsorted scatter-add assembly of ``(n_cells, k, d)`` into ``(n_nodes, d)``."""
+    d = pe.shape[-1]
+    return jnp.zeros((mesh.n_nodes, d), pe.dtype).at[mesh.cells.reshape(-1)].add(pe.reshape(-1, d))
+
+
+def segsum_sorted(mesh, pe, perm, seg):
+    """``segment_sum`` over slots sorted by node (``perm``: slot order, ``seg``: node ids)."""
+    d = pe.shape[-1]
+    return jax.ops.segment_sum(
+        pe.reshape(-1, d)[perm], seg, num_segments=mesh.n_nodes, indices_are_sorted=True
+    )
+
+
+def sorted_slots(mesh) -> tuple[jax.Array, jax.Array]:
+    """Host-precomputed ``(perm, node_of_sorted_slot)`` for :func:`segsum_sorted`."""
+    flat = np.asarray(mesh.cells).ravel()
+    perm = np.argsort(flat, kind="stable")
+    return jnp.asarray(perm, dtype=jnp.int32), jnp.asarray(flat[perm], dtype=jnp.int32)
+
+
+def model_kernels(name: str, psi) -> dict:
+    """Kernel name → ``fn(x, v, mesh, params, perm, seg)`` for one material model."""
+    hand = psi_with_P(psi, reference.HAND_P[name])
+
+    def elem_kernel(x, v, m, p, perm, seg):
+        fe = jax.vmap(_element_force(psi), in_axes=(0, 0, 0, cell_params_axes(p, m.n_cells)))
+        return fe(x[m.cells], m.dN, m.weights, p)
+
+    ks = {
+        "energy": lambda x, v, m, p, perm, seg: je.energy(psi, x, m, p),
+        "forces": lambda x, v, m, p, perm, seg: je.forces(psi, x, m, p),
+        "forces_handP": lambda x, v, m, p, perm, seg: je.forces(hand, x, m, p),
+    }
+    if name in FAST_HAND_P:
+        fast = psi_with_P(psi, FAST_HAND_P[name])
+        ks["forces_handP_cof"] = lambda x, v, m, p, perm, seg: je.forces(fast, x, m, p)
+    ks.update(
+        {
+            "elem_forces": lambda x, v, m, p, perm, seg: je.element_forces(psi, x, m, p),
+            "elem_kernel": elem_kernel,
+            "forces_scatter": lambda x, v, m, p, perm, seg: (
+                -scatter_add(m, je.element_forces(psi, x, m, p))
+            ),
+            "forces_segsum": lambda x, v, m, p, perm, seg: (
+                -segsum_sorted(m, je.element_forces(psi, x, m, p), perm, seg)
+            ),
+            "forces_jaxgrad": lambda x, v, m, p, perm, seg: (
+                -jax.grad(je.energy, argnums=1)(psi, x, m, p)
+            ),
+            "hvp": lambda x, v, m, p, perm, seg: je.hvp(psi, x, v, m, p),
+            "elem_hess": lambda x, v, m, p, perm, seg: je.element_hessians(psi, x, m, p),
+            "elem_hess_psd": lambda x, v, m, p, perm, seg: je.element_hessians(
+                psi, x, m, p, project=True
+            ),
+        }
+    )
+    return ks
+
+
+ASSEMBLY = {
+    "asm_gather": lambda pe, m, perm, seg: je.assemble(m, pe),
+    "asm_scatter": lambda pe, m, perm, seg: scatter_add(m, pe),
+    "asm_segsum": lambda pe, m, perm, seg: segsum_sorted(m, pe, perm, seg),
+}
+
+FORCE_VARIANTS = (
+    "forces_handP",
+    "forces_handP_cof",
+    "forces_scatter",
+    "forces_segsum",
+    "forces_jaxgrad",
+)
+
+
+# --------------------------------------------------------------------------- timing
+
+
+def measure(fn, args, *, min_repeats: int, min_time: float, max_repeats: int = 50) -> dict:
+    """Compile ``jax.jit(fn)`` for ``args`` and time warm calls; returns seconds."""
+    t0 = time.perf_counter()
+    lowered = jax.jit(fn).lower(*args)
+    hlo_kb = len(lowered.as_text()) / 1024
+    compiled = lowered.compile()
+    compile_s = time.perf_counter() - t0
+    out = jax.block_until_ready(compiled(*args))  # warm-up
+    times: list[float] = []
+    while len(times) < min_repeats or (sum(times) < min_time and len(times) < max_repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        times.append(time.perf_counter() - t)
+    return {
+        "compile_s": compile_s,
+        "hlo_kb": hlo_kb,
+        "median_s": float(np.median(times)),
+        "min_s": float(np.min(times)),
+        "repeats": len(times),
+        "out": out,
+    }
+
+
+def _rel_err(a, b) -> float:
+    a, b = np.asarray(a), np.asarray(b)
+    return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-300))
+
+
+def bench_case(
+    models, dim: int, target: int, *, min_repeats, min_time, budget, rates, log
+) -> tuple[list, list]:
+    """Run every kernel on one mesh; ``rates`` carries s/element from the previous size."""
+    t0 = time.perf_counter()
+    mesh = make_mesh(dim, target)
+    x, v = deformed(mesh)
+    perm, seg = sorted_slots(mesh)
+    c = mesh.n_cells
+    log(
+        f"\n== {dim}D, {c} cells, {mesh.n_nodes} nodes (mesh built in "
+        f"{time.perf_counter() - t0:.1f} s) =="
+    )
+    rows, skipped = [], []
+
+    def run(model, kernel, fn, args, reference_out=None):
+        key = (model, dim, kernel)
+        if key in rates and rates[key] * c * (min_repeats + 1) > budget:
+            why = (
+                f"estimated {rates[key] * c:.1f} s per call from the previous size; "
+                f"{min_repeats + 1} calls exceed --budget {budget:.0f} s"
+            )
+            log(f"  {model:>16s} {kernel:<17s} SKIPPED: {why}")
+            skipped.append(
+                {"model": model, "dim": dim, "n_cells": c, "kernel": kernel, "reason": why}
+            )
+            return None
+        r = measure(fn, args, min_repeats=min_repeats, min_time=min_time)
+        out = r.pop("out")
+        if reference_out is not None:
+            r["rel_err_vs_forces"] = _rel_err(out, reference_out)
+        rates[key] = r["median_s"] / c
+        r.update(
+            model=model,
+            dim=dim,
+            n_cells=c,
+            n_nodes=mesh.n_nodes,
+            kernel=kernel,
+            elems_per_s=c / r["median_s"],
+        )
+        rows.append(r)
+        extra = f"  err={r['rel_err_vs_forces']:.1e}" if "rel_err_vs_forces" in r else ""
+        log(
+            f"  {model:>16s} {kernel:<17s} {r['median_s'] * 1e3:10.2f} ms "
+            f"(min {r['min_s'] * 1e3:9.2f})  {r['elems_per_s'] / 1e6:7.2f} Melem/s  "
+            f"compile {r['compile_s']:5.2f} s  hlo {r['hlo_kb']:6.0f} kB{extra}"
+        )
+        return out
+
+    rng = np.random.default_rng(1)
+    pe = jnp.asarray(rng.standard_normal((c, mesh.cells.shape[1], dim)))
+    for kernel, fn in ASSEMBLY.items():
+        run("-", kernel, fn, (pe, mesh, perm, seg))
+    del pe
+
+    params = je.Lame(jnp.asarray(1.0e3 / 2.6), jnp.asarray(1.0e3 * 0.3 / (1.3 * 0.4)))
+    for name in models:
+        if name == "stable_neo_hookean_log" and dim == 2:
+            log(f"  {name}: 3D only, skipped in 2D")
+            continue
+        ref_out = None
+        for kernel, fn in model_kernels(name, materials.BUILTIN[name]).items():
+            args = (x, v, mesh, params, perm, seg)
+            out = run(name, kernel, fn, args, ref_out if kernel in FORCE_VARIANTS else None)
+            if kernel == "forces":
+                ref_out = out
+            del out
+    return rows, skipped
+
+
+def ratios(rows) -> list[dict]:
+    """The issue's ratios per (model, dim, size), from median times."""
+    by = {(r["model"], r["dim"], r["n_cells"], r["kernel"]): r["median_s"] for r in rows}
+    out = []
+    for (model, dim, c, kernel), t in by.items():
+        if kernel != "forces":
+            continue
+
+        def get(k, model=model, dim=dim, c=c):
+            return by.get((model, dim, c, k))
+
+        entry = {"model": model, "dim": dim, "n_cells": c}
+        for label, k in (
+            ("forces/forces_handP", "forces_handP"),
+            ("forces/forces_handP_cof", "forces_handP_cof"),
+            ("forces/elem_forces", "elem_forces"),
+            ("forces/elem_kernel", "elem_kernel"),
+            ("forces/forces_scatter", "forces_scatter"),
+            ("forces/forces_segsum", "forces_segsum"),
+            ("forces/forces_jaxgrad", "forces_jaxgrad"),
+            ("forces/energy", "energy"),
+        ):
+            if get(k):
+                entry[label] = t / get(k)
+        a = {k: by.get(("-", dim, c, k)) for k in ASSEMBLY}
+        if a["asm_gather"]:
+            for k in ("asm_scatter", "asm_segsum"):
+                if a[k]:
+                    entry[f"asm_gather/{k}"] = a["asm_gather"] / a[k]
+        out.append(entry)
+    return out
+
+
+def format_tables(rows, rats) -> str:
+    """Plain-text tables: median ms and Melem/s per kernel and size."""
+    lines = []
+    for model in dict.fromkeys(r["model"] for r in rows):
+        for dim in sorted({r["dim"] for r in rows if r["model"] == model}):
+            sel = [r for r in rows if r["model"] == model and r["dim"] == dim]
+            sizes = sorted({r["n_cells"] for r in sel})
+            title = "assembly alone" if model == "-" else model
+            lines.append(f"\n{title}, {dim}D — median ms / Melem/s (compile s at largest size)")
+            head = f"{'kernel':<18s}" + "".join(f"{s:>22,d}" for s in sizes) + f"{'compile':>10s}"
+            lines.append(head)
+            for kernel in dict.fromkeys(r["kernel"] for r in sel):
+                cells, comp = [], ""
+                for s in sizes:
+                    r = next((r for r in sel if r["n_cells"] == s and r["kernel"] == kernel), None)
+                    if r is None:
+                        cells.append(f"{'skipped':>22s}")
+                    else:
+                        cells.append(f"{r['median_s'] * 1e3:12.2f} /{r['elems_per_s'] / 1e6:7.2f}")
+                        comp = f"{r['compile_s']:10.2f}"
+                lines.append(f"{kernel:<18s}" + "".join(cells) + comp)
+    if rats:
+        lines.append(
+            "\nratios (median times; targets: forces/forces_handP ≤ 1.1, forces/elem_forces ≤ 1.25)"
+        )
+        keys = [k for k in rats[0] if "/" in k]
+        lines.append(
+            f"{'model':<16s}{'dim':>4s}{'cells':>10s}"
+            + "".join(f"{k.replace('forces', 'f'):>17s}" for k in keys)
+        )
+        for e in rats:
+            lines.append(
+                f"{e['model']:<16s}{e['dim']:>4d}{e['n_cells']:>10d}"
+                + "".join(f"{e.get(k, float('nan')):17.3f}" for k in keys)
+            )
+    return "\n".join(lines)
+
+
+def write_json(path: str, data: dict) -> None:
+    """Write ``data`` atomically (temp file in the same directory + ``os.replace``)."""
+    d = os.path.dirname(os.path.abspath(path))
+    os.makedirs(d, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=".bench_kernels.", suffix=".json")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", choices=list(SIZES), default="all")
+    ap.add_argument(
+        "--models",
+        default="neo_hookean",
+        help="comma-separated names from jaxelastic.materials.BUILTIN",
+    )
+    ap.add_argument("--dims", default="2,3")
+    ap.add_argument("--out", default=None, help="directory for bench_kernels.json")
+    ap.add_argument("--min-repeats", type=int, default=5)
+    ap.add_argument(
+        "--min-time",
+        type=float,
+        default=0.5,
+        help="keep repeating (up to 50) until this many seconds are timed",
+    )
+    ap.add_argument(
+        "--budget",
+        type=float,
+        default=90.0,
+        help="skip a kernel whose estimated timed calls exceed this many seconds",
+    )
+    args = ap.parse_args(argv)
+    models = [m.strip() for m in args.models.split(",") if m.strip()]
+    for m in models:
+        if m not in materials.BUILTIN:
+            ap.error(f"unknown model {m!r}; choose from {sorted(materials.BUILTIN)}")
+    dims = [int(d) for d in args.dims.split(",")]
+
+    jax.config.update("jax_enable_x64", True)
+    log = lambda s: print(s, flush=True)
+    load0 = os.getloadavg()
+    log(
+        f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} cpus, "
+        f"load average {load0[0]:.2f}"
+    )
+    t_start = time.perf_counter()
+    rows, skipped, rates = [], [], {}
+    for dim in dims:
+        for target in SIZES[args.sizes]:
+            r, s = bench_case(
+                models,
+                dim,
+                target,
+                min_repeats=args.min_repeats,
+                min_time=args.min_time,
+                budget=args.budget,
+                rates=rates,
+                log=log,
+            )
+            rows += r
+            skipped += s
+    rats = ratios(rows)
+    log(format_tables(rows, rats))
+    for s in skipped:
+        log(f"skipped {s['model']} {s['dim']}D {s['n_cells']} {s['kernel']}: {s['reason']}")
+    result = {
+        "meta": {
+            "command": " ".join([os.path.basename(sys.argv[0])] + list(argv or sys.argv[1:])),
+            "jax": jax.__version__,
+            "platform": jax.devices()[0].platform,
+            "cpu_count": os.cpu_count(),
+            "machine": platform.machine(),
+            "dtype": str(jnp.zeros(()).dtype),
+            "load_average_start": load0,
+            "load_average_end": os.getloadavg(),
+            "wall_s": time.perf_counter() - t_start,
+        },
+        "results": rows,
+        "ratios": rats,
+        "skipped": skipped,
+    }
+    if args.out:
+        path = os.path.join(args.out, "bench_kernels.json")
+        write_json(path, result)
+        log(f"wrote {path}")
+    return result
+
+
+if __name__ == "__main__":
+    main()
