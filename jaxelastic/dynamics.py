@@ -206,7 +206,7 @@ def simulate(
         ``(final_state, stats)``: one dict per step with time, status, Newton and CG
         iterations, residual, wall time.
     """
-    from tqdm.auto import tqdm
+    from tqdm import tqdm
 
     stats = []
     it = tqdm(range(n_steps), desc="time steps", disable=not progress, leave=False)

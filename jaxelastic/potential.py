@@ -155,7 +155,7 @@ def node_hessian_blocks(pot: Potential, Ke: jax.Array) -> jax.Array:
     B = flat[mesh.incidence].sum(axis=1)  # (n, d, d)
     w = _mass_diag(pot)
     if w is not None:
-        B = B + w[:, None, None] * jnp.eye(d, dtype=Ke.dtype)
+        B = B + w[:, None, None] * jnp.eye(d, dtype=Ke.dtype)[None]
     return B
 
 

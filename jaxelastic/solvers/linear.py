@@ -107,7 +107,7 @@ def block_jacobi(blocks: jax.Array, free: jax.Array):
     columns). Blocks that are not positive definite fall back to ``|diag|`` (or 1).
     """
     d = blocks.shape[-1]
-    eye = jnp.eye(d, dtype=blocks.dtype)
+    eye = jnp.eye(d, dtype=blocks.dtype)[None]  # (1, d, d)
     fm = free.astype(blocks.dtype)
     B = blocks * fm[:, :, None] * fm[:, None, :] + eye * (1.0 - fm)[:, :, None]
     L = jnp.linalg.cholesky(B)

@@ -36,7 +36,8 @@ from ..energy import assemble
 from ..kinematics import det, deformation_gradients
 from ..loads import Dirichlet
 from ..potential import Potential
-from .linear import CG_NEGATIVE_CURVATURE, block_jacobi, cg, jacobi
+from .host import HostLinearSolver
+from .linear import CG_NEGATIVE_CURVATURE, CGResult, block_jacobi, cg, jacobi
 
 __all__ = ["Status", "NewtonSettings", "NewtonResult", "SolveError", "newton", "solve"]
 
@@ -157,7 +158,11 @@ def _norm(a):
 
 
 def newton(
-    pot: Potential, x0: jax.Array, bc: Dirichlet, settings: NewtonSettings = NewtonSettings()
+    pot: Potential,
+    x0: jax.Array,
+    bc: Dirichlet,
+    settings: NewtonSettings = NewtonSettings(),
+    linear=None,
 ) -> NewtonResult:
     """Minimise Π(x) subject to ``x[bc.mask] = bc.values[bc.mask]`` (pure, jit-compatible).
 
@@ -166,6 +171,9 @@ def newton(
         x0: ``(n_nodes, dim)`` initial positions (Dirichlet dofs need not be in place).
         bc: Dirichlet data.
         settings: static :class:`NewtonSettings`.
+        linear: None for matrix-free CG under jit, or a
+            :class:`~jaxelastic.solvers.host.HostLinearSolver` (sparse Cholesky / AMG on
+            the host, reached through ``jax.pure_callback``); static.
     """
     s = settings
     if s.hessian not in ("hvp", "element", "projected"):
@@ -183,7 +191,7 @@ def newton(
     xD = bc.values
     dtype = x0.dtype
     tiny = jnp.finfo(dtype).tiny
-    need_Ke = s.hessian != "hvp" or s.preconditioner != "none"
+    need_Ke = s.hessian != "hvp" or s.preconditioner != "none" or linear is not None
 
     def value_and_grad(x):
         v = pot_mod.value(pot, x)
@@ -227,7 +235,7 @@ def newton(
         def A(v):
             return fm * H(fm * v) + (1.0 - fm) * v
 
-        if s.preconditioner == "none":
+        if s.preconditioner == "none" or linear is not None:
             M = None
         else:
             blocks = pot_mod.node_hessian_blocks(pot, Ke)
@@ -236,9 +244,27 @@ def newton(
         rhs = -gf - lax.cond(dn > 0, lambda: fm * H(dD), lambda: jnp.zeros_like(x))
         bn = _norm(rhs)
         scale = jnp.maximum(jnp.maximum(ref, rn), bn)
-        eta = jnp.clip(jnp.sqrt(rn / jnp.maximum(scale, tiny)), 1e-4, 0.5)
+        eta = jnp.clip(rn / jnp.maximum(scale, tiny), 1e-6, 0.1)
         tol_cg = jnp.maximum(eta * bn, 0.1 * s.rtol * scale)
-        res = cg(A, rhs, M, tol=tol_cg, max_iter=s.cg_max_iter)
+        if linear is None:
+            res = cg(A, rhs, M, tol=tol_cg, max_iter=s.cg_max_iter)
+        else:
+            md = pot_mod._mass_diag(pot)
+            md = jnp.zeros(x.shape[:1], dtype) if md is None else md
+            shapes = (
+                jax.ShapeDtypeStruct(x.shape, dtype),
+                jax.ShapeDtypeStruct((), jnp.int32),
+                jax.ShapeDtypeStruct((), jnp.bool_),
+            )
+            dx, its, proj = jax.pure_callback(
+                linear, shapes, Ke, md, rhs, tol_cg / jnp.maximum(bn, tiny)
+            )
+            res = CGResult(
+                x=dx,
+                iterations=its,
+                status=jnp.where(proj, CG_NEGATIVE_CURVATURE, 0),
+                residual=jnp.zeros((), dtype),
+            )
         d_free = res.x * fm
         slope_free = jnp.sum(g * d_free)
         # not a descent direction (only possible without projection): steepest descent
@@ -341,7 +367,7 @@ def newton(
     )
 
 
-_newton_jit = jax.jit(newton, static_argnames=("settings",))
+_newton_jit = jax.jit(newton, static_argnames=("settings", "linear"))
 
 
 def solve(
@@ -350,6 +376,7 @@ def solve(
     x0: jax.Array | None = None,
     *,
     settings: NewtonSettings = NewtonSettings(),
+    linear: HostLinearSolver | str | None = None,
     throw: bool = True,
 ) -> NewtonResult:
     """Jitted :func:`newton` with wall-clock timing and loud failures.
@@ -357,6 +384,9 @@ def solve(
     Args:
         pot: the potential; bc: Dirichlet data; x0: initial positions (default: rest).
         settings: :class:`NewtonSettings`.
+        linear: None (matrix-free CG under jit), ``"direct"``/``"amg"`` (build a
+            :class:`HostLinearSolver` for this call), or a prebuilt one (reuse it across
+            solves of the same scene to compile and analyse the pattern once).
         throw: raise :class:`SolveError` unless the status is SUCCESS.
     """
     if x0 is None:
@@ -364,8 +394,10 @@ def solve(
     x0 = jnp.asarray(x0, pot.mesh.points.dtype)
     if x0.shape != pot.mesh.points.shape:
         raise ValueError(f"x0 must have shape {pot.mesh.points.shape}, got {x0.shape}")
+    if isinstance(linear, str):
+        linear = HostLinearSolver.for_problem(pot.mesh, bc, linear)
     t0 = time.perf_counter()
-    res = jax.block_until_ready(_newton_jit(pot, x0, bc, settings=settings))
+    res = jax.block_until_ready(_newton_jit(pot, x0, bc, settings=settings, linear=linear))
     res = res._replace(wall_time=time.perf_counter() - t0)
     if throw and int(res.status) != Status.SUCCESS:
         raise SolveError(res)

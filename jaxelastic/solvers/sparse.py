@@ -109,8 +109,10 @@ class SparsityPattern:
             dim: spatial dimension (dofs per node).
             fixed: ``(n_nodes*dim,)`` bool Dirichlet mask (node-major), or ``None``.
 
-        Cost: one ``np.unique`` over the ``n_cells*k²`` node pairs; memory is dominated by
-        ``scatter`` (8 bytes per element-Hessian entry).
+        Cost: one stable argsort of the ``n_cells*k²`` node pairs plus a few linear passes
+        (about 4.5 s for 585k tets / 316k dofs on our 2-core machine, most of it first
+        touching the 84M-entry ``scatter``); memory is dominated by ``scatter`` (8 bytes
+        per element-Hessian entry, like the Hessians themselves).
         """
         cells = np.asarray(cells)
         if cells.ndim != 2:
@@ -215,6 +217,10 @@ class SparsityPattern:
                 f"element Hessians have {w.size} entries, the pattern expects "
                 f"{self.scatter.size} (n_cells*(k*dim)**2)"
             )
+        # bincount with intp indices was the fastest of the variants we measured (585k tets,
+        # 84M entries -> 13.7M slots: bincount 0.15 s; int32 indices 0.68 s (converted on
+        # every call); CSR 0/1-matrix product 0.37 s; sort-once + add.reduceat 0.74 s;
+        # block-wise sparse product 1.1 s; scipy COO->CSR 6.0 s)
         data = np.bincount(self.scatter, weights=w, minlength=self.nnz)
         if symmetrize:
             data += data[self.transpose]
@@ -454,7 +460,7 @@ class DirectSolver:
             # with P A Pᵀ = L U and no off-diagonal pivoting, U = D Lᵀ: inertia = signs of D
             same_perm = np.array_equal(lu.perm_r, lu.perm_c)
             self.positive_definite = bool(same_perm and np.all(lu.U.diagonal() > 0))
-            if not self.positive_definite and self.on_indefinite == "fail":
+            if not self.positive_definite:  # refactorise with pivoting if asked (update)
                 self.method = "lu"
                 return
         elif self.positive_definite is None:
@@ -577,8 +583,8 @@ class AMGSolver(_CGMixin):
             smooth=("jacobi", {"omega": 4.0 / 3.0}),
             presmoother=("block_gauss_seidel", {"sweep": "symmetric"}),
             postsmoother=("block_gauss_seidel", {"sweep": "symmetric"}),
-            max_coarse=300,
-            coarse_solver="pinv",
+            max_coarse=300,  # node blocks; the coarsest level is factorised by SuperLU
+            coarse_solver="splu",
         )
         self.sa_options.update(sa_options or {})
         self.ml = None

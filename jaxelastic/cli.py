@@ -1,0 +1,233 @@
+"""Command line: ``jaxelastic run [SCENE] --out DIR``, ``jaxelastic crosscheck``, ``jaxelastic
+scenes`` (also ``python -m jaxelastic ...``).
+
+``run`` without a SCENE runs the shipped ``default`` scene (a neo-Hookean beam released
+under gravity, simulated until it settles and compared with the static solution). SCENE is
+a TOML file or the name of a shipped scene (``jaxelastic scenes`` lists them);
+``--set KEY=VALUE`` overrides a scene entry (VALUE in TOML syntax, e.g.
+``--set mesh.n=[10,2,2] --set integrator.duration=1.0``).
+
+The CLI, and only the CLI, changes JAX's configuration: it enables float64 and JAX's
+persistent compilation cache in ``$JAXELASTIC_CACHE_DIR`` (default
+``$XDG_CACHE_HOME/jaxelastic/jax`` or ``~/.cache/jaxelastic/jax``; ``--no-cache`` turns
+it off), which cuts the compile time of a repeated run.
+
+Exit status: 0 success, 1 a solve failed (the summary is still written), 2 bad usage or
+an invalid scene.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+__all__ = ["main", "cache_dir"]
+
+
+def cache_dir() -> str:
+    """Directory of the persistent JAX compilation cache used by the CLI."""
+    env = os.environ.get("JAXELASTIC_CACHE_DIR")
+    if env:
+        return os.path.abspath(os.path.expanduser(env))
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "jaxelastic", "jax")
+
+
+def _parse_value(text: str):
+    """A ``--set`` value in TOML syntax; a bare word is a string."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python < 3.11
+        import tomli as tomllib
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    p = argparse.ArgumentParser(
+        prog="jaxelastic",
+        description="Differentiable finite-element elasticity in JAX: run scenes, check "
+        "the autodiff mechanics.",
+    )
+    p.add_argument("--version", action="version", version=f"jaxelastic {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    r = sub.add_parser(
+        "run",
+        help="run a scene (default: the built-in beam) and write its outputs",
+        description="Solve a scene and write a ParaView time series (VTU + PVD), PNG "
+        "pictures and summary.json into --out.",
+    )
+    r.add_argument(
+        "scene",
+        nargs="?",
+        default="default",
+        help="a scene TOML file or a shipped scene name (default: %(default)s)",
+    )
+    r.add_argument(
+        "--out",
+        "-o",
+        default=None,
+        metavar="DIR",
+        help="output directory, created if needed (default: ./jaxelastic-out/<scene name>)",
+    )
+    r.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a scene entry, e.g. --set integrator.duration=1.0 (TOML value)",
+    )
+    r.add_argument("--no-progress", action="store_true", help="no progress bar or messages")
+    r.add_argument(
+        "--no-cache", action="store_true", help="do not use the persistent compilation cache"
+    )
+    sub.add_parser(
+        "crosscheck",
+        help="check autodiff stress/forces/HVP against hand derivations and finite "
+        "differences (options: jaxelastic crosscheck --help)",
+        add_help=False,
+    )
+    sub.add_parser("scenes", help="list the shipped scenes")
+    return p
+
+
+def _enable_jax(cache: bool) -> None:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    if cache:
+        path = cache_dir()
+        try:
+            os.makedirs(path, exist_ok=True)
+        except OSError as e:
+            print(f"jaxelastic: warning: no compilation cache ({e})", file=sys.stderr)
+            return
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def _crosscheck(argv) -> int:
+    try:
+        from . import crosscheck
+    except ImportError as e:
+        print(f"jaxelastic: error: the crosscheck module is not available ({e})", file=sys.stderr)
+        return 2
+    return int(crosscheck.main(list(argv)) or 0)
+
+
+def _list_scenes() -> int:
+    from .scenes import load_scene, shipped_scenes
+
+    for name, path in shipped_scenes().items():
+        try:
+            desc = load_scene(path)["description"]
+        except Exception as e:  # noqa: BLE001 — a broken shipped file is reported, not fatal
+            desc = f"(invalid: {e})"
+        print(f"{name:10s} {desc}\n{'':10s} {path}")
+    return 0
+
+
+def _highlights(s: dict) -> str:
+    lines = [f"scene {s['scene']['name']!r}: {s['status']}"]
+    m = s["mesh"]
+    lines.append(f"  mesh: {m['n_nodes']} nodes, {m['n_cells']} {m['element']} cells")
+    t = s["timings"]
+    if "dynamic" in s:
+        d = s["dynamic"]
+        settled = f"settled at t = {d['settle_time']:.3g} s" if d["settled"] else "not settled"
+        lines.append(
+            f"  dynamics: {d['steps']} steps to t = {d['t_end']:.4g} s, {settled}; "
+            f"Newton {d['newton_steps_total']}, CG {d['linear_iterations_total']} in total"
+        )
+        if t.get("first_step_incl_compile") is not None:
+            lines.append(
+                f"  time: first step {t['first_step_incl_compile']:.2f} s (incl. compile), "
+                f"then {1e3 * t['step_median']:.1f} ms/step (median)"
+            )
+        u = d["tip"]["displacement"]
+        lines.append(f"  tip displacement (node {d['tip']['node']}): {_fmt_vec(u)} m")
+    if "comparison" in s:
+        c = s["comparison"]
+        lines.append(
+            f"  static vs dynamic: max nodal distance {c['max_nodal_distance']:.3e} m "
+            f"({c['relative_to_tip_deflection']:.2e} of the tip deflection "
+            f"{c['tip_deflection_static']:.4g} m)"
+        )
+    if "static" in s and "dynamic" not in s:
+        st = s["static"]
+        lines.append(
+            f"  static: Newton {st['newton_steps']}, CG {st['linear_iterations']}, final "
+            f"residual {st['final_residual']:.2e}, solve {t['solve_incl_compile']:.2f} s "
+            "(incl. compile)"
+        )
+    for i, p in enumerate(s.get("probes", [])):
+        lines.append(
+            f"  probe {i} at {_fmt_vec(p['point'])} (node {p['node']}): u = "
+            f"{_fmt_vec(p['displacement'])}"
+        )
+    lines.append(f"  total {t['total']:.1f} s; outputs in {s['outputs']['directory']}")
+    return "\n".join(lines)
+
+
+def _fmt_vec(v) -> str:
+    return "[" + ", ".join(f"{a:.5g}" for a in v) + "]"
+
+
+def _run(args) -> int:
+    from .scenes import SceneError, load_scene
+
+    overrides = {}
+    for item in args.set:
+        key, sep, val = item.partition("=")
+        if not sep or not key.strip():
+            print(f"jaxelastic: error: --set expects KEY=VALUE, got {item!r}", file=sys.stderr)
+            return 2
+        overrides[key.strip()] = _parse_value(val.strip())
+    _enable_jax(cache=not args.no_cache)
+    from .scenes import run_scene
+    from .solvers.newton import SolveError
+
+    t0 = time.perf_counter()
+    try:
+        scene = load_scene(args.scene, overrides=overrides)
+        out = args.out or os.path.join("jaxelastic-out", scene.name)
+        summary = run_scene(scene, out, progress=not args.no_progress)
+    except SceneError as e:
+        print(f"jaxelastic: error: {e}", file=sys.stderr)
+        return 2
+    except SolveError as e:
+        print(f"jaxelastic: solve failed: {e}", file=sys.stderr)
+        return 1
+    if not args.no_progress:
+        print(_highlights(summary))
+        print(f"  wall time of the command: {time.perf_counter() - t0:.1f} s")
+    else:
+        print(json.dumps({"status": summary["status"], "out": summary["outputs"]["directory"]}))
+    return 0
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``jaxelastic`` command; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "crosscheck":
+        return _crosscheck(argv[1:])
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    if args.command == "scenes":
+        return _list_scenes()
+    return _run(args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

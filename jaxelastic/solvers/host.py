@@ -1,0 +1,101 @@
+"""Host-side linear algebra behind the Newton interface (sparse Cholesky, AMG-CG).
+
+:class:`HostLinearSolver` is built once per (mesh, Dirichlet mask): it analyses the
+sparsity pattern and keeps a :mod:`~jaxelastic.solvers.sparse` solver. Inside the jitted
+Newton loop it is reached through :func:`jax.pure_callback`: the element Hessians computed
+by JAX are assembled into CSR on the host (one ``bincount``), factorised or given an AMG
+hierarchy, and the step comes back to the loop. On CPU nothing is copied across devices.
+
+If the assembled Hessian is not positive definite (Cholesky fails, or AMG-CG meets
+negative curvature), the element Hessians are PSD-projected on the host and the system is
+solved again; the call reports it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .sparse import SparsityPattern, make_solver
+
+__all__ = ["HostLinearSolver"]
+
+
+def _project_psd_np(Ke: np.ndarray) -> np.ndarray:
+    Ke = 0.5 * (Ke + np.swapaxes(Ke, 1, 2))
+    lam, Q = np.linalg.eigh(Ke)
+    return np.einsum("cij,cj,ckj->cik", Q, np.maximum(lam, 0.0), Q)
+
+
+class HostLinearSolver:
+    """Sparse direct or AMG solve of the Newton system on the host.
+
+    Args:
+        cells: ``(n_cells, k)`` connectivity; points: ``(n_nodes, dim)`` rest positions.
+        fixed: ``(n_nodes, dim)`` bool Dirichlet mask.
+        kind: ``"direct"`` (CHOLMOD Cholesky via cholespy, SuperLU fallback) or ``"amg"``
+            (PyAMG smoothed aggregation with rigid-body modes, as a CG preconditioner).
+        **opts: options of the underlying solver class.
+
+    Instances hash by identity: pass one to :func:`~jaxelastic.solvers.newton.solve` as
+    ``linear=`` and reuse it across solves of the same scene (one compilation, one
+    pattern analysis).
+    """
+
+    def __init__(self, cells, points, fixed, kind: str = "direct", **opts):
+        cells = np.asarray(cells)
+        points = np.asarray(points)
+        fixed = np.asarray(fixed, dtype=bool)
+        n, d = points.shape
+        if fixed.shape != (n, d):
+            raise ValueError(f"fixed mask must have shape {(n, d)}, got {fixed.shape}")
+        self.kind = kind
+        self.shape = (n, d)
+        self.fixed = fixed.reshape(-1)
+        self.pattern = SparsityPattern.build(cells, n, d, self.fixed)
+        self.solver = make_solver(kind, points=points, fixed=self.fixed, **opts)
+        self.calls = 0
+        self.projected_calls = 0
+
+    @classmethod
+    def for_problem(cls, mesh, bc, kind: str = "direct", **opts) -> HostLinearSolver:
+        """Build from a :class:`~jaxelastic.mesh.Mesh` and :class:`~jaxelastic.loads.Dirichlet`."""
+        return cls(mesh.cells, mesh.points, bc.mask, kind, **opts)
+
+    def _matrix(self, Ke, mass_diag):
+        K = self.pattern.assemble(Ke)
+        if mass_diag is not None:
+            md = np.repeat(np.asarray(mass_diag, dtype=K.dtype), self.shape[1])
+            md[self.fixed] = 0.0
+            K = K + _diag(md)
+        return K
+
+    def __call__(self, Ke, mass_diag, rhs, rtol):
+        """Solve ``K Δ = rhs`` (``rhs`` ``(n_nodes, dim)``, zero on fixed dofs).
+
+        Returns:
+            ``(Δ (n_nodes, dim), iterations int32, projected bool)``.
+        """
+        self.calls += 1
+        Ke = np.array(Ke, dtype=np.float64)
+        b = np.array(rhs, dtype=np.float64, order="C").reshape(-1)  # writable, contiguous
+        K = self._matrix(Ke, mass_diag)
+        self.solver.update(K)
+        x, info = self.solver.solve(b, rtol=float(rtol))
+        projected = False
+        if not info.get("converged", True) or not np.all(np.isfinite(x)):
+            projected = True
+            self.projected_calls += 1
+            K = self._matrix(_project_psd_np(Ke), mass_diag)
+            self.solver.update(K)
+            x, info = self.solver.solve(b, rtol=float(rtol))
+        x = np.where(self.fixed, 0.0, x).reshape(self.shape).astype(np.asarray(rhs).dtype)
+        return x, np.int32(info.get("iterations", 1)), np.bool_(projected)
+
+    def __repr__(self) -> str:
+        return f"HostLinearSolver(kind={self.kind!r}, n_dofs={self.fixed.size})"
+
+
+def _diag(v):
+    import scipy.sparse as sp
+
+    return sp.diags(v, format="csr")

@@ -1,0 +1,88 @@
+"""Execute every notebook in ``notebooks/``: their claims are ``assert``s, so each is a test.
+
+The kernel is the interpreter running pytest (a throw-away kernel spec in a temp dir whose
+argv is ``sys.executable``), so a fresh ``python3 -m venv .venv && pip install -e .[dev]``
+works whatever kernels are installed globally or per user. Each notebook runs with a
+temporary working directory; the executed copy is never written back over the source.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import sys
+import time
+
+import nbformat
+import pytest
+from jupyter_client.kernelspec import KernelSpecManager
+from jupyter_client.manager import AsyncKernelManager
+from nbclient import NotebookClient
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+NOTEBOOK_DIR = ROOT / "notebooks"
+NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
+KERNEL_NAME = "jaxelastic-test-python"
+CELL_TIMEOUT = 600  # seconds, per cell
+
+
+@pytest.fixture(scope="module")
+def kernel_spec_manager(tmp_path_factory) -> KernelSpecManager:
+    """A kernel spec that launches ipykernel with the interpreter running the tests."""
+    kernels = tmp_path_factory.mktemp("kernels")
+    spec_dir = kernels / KERNEL_NAME
+    spec_dir.mkdir()
+    spec = {
+        "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
+        "display_name": f"Python {sys.version_info.major}.{sys.version_info.minor} (tests)",
+        "language": "python",
+        "metadata": {"debugger": False},
+    }
+    (spec_dir / "kernel.json").write_text(json.dumps(spec, indent=1))
+    return KernelSpecManager(kernel_dirs=[str(kernels)])
+
+
+def _stray_files() -> set[str]:
+    """Files under ``notebooks/`` other than notebooks (outputs a notebook must not write)."""
+    return {
+        str(p.relative_to(ROOT))
+        for p in NOTEBOOK_DIR.rglob("*")
+        if p.suffix != ".ipynb" and ".ipynb_checkpoints" not in p.parts
+    }
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebook_executes(path, kernel_spec_manager, tmp_path, monkeypatch):
+    # Keep the kernel's runtime and IPython files out of $HOME, and let ipykernel pick its
+    # inline matplotlib backend even if the caller exported a non-interactive one.
+    monkeypatch.setenv("JUPYTER_RUNTIME_DIR", str(tmp_path / "runtime"))
+    monkeypatch.setenv("IPYTHONDIR", str(tmp_path / "ipython"))
+    monkeypatch.setenv("MPLCONFIGDIR", str(tmp_path / "mpl"))
+    monkeypatch.setenv("PYDEVD_DISABLE_FILE_VALIDATION", "1")
+    monkeypatch.delenv("MPLBACKEND", raising=False)
+    workdir = tmp_path / "cwd"
+    workdir.mkdir()
+
+    source = path.read_bytes()
+    nb = nbformat.reads(source.decode("utf-8"), as_version=4)
+    before = _stray_files()
+
+    km = AsyncKernelManager(kernel_name=KERNEL_NAME, kernel_spec_manager=kernel_spec_manager)
+    client = NotebookClient(
+        nb,
+        km=km,
+        timeout=CELL_TIMEOUT,
+        kernel_name=KERNEL_NAME,
+        resources={"metadata": {"path": str(workdir)}},
+    )
+    t0 = time.perf_counter()
+    client.execute()  # raises CellExecutionError, with the failing cell, on any error
+    elapsed = time.perf_counter() - t0
+
+    errors = [
+        o for c in nb.cells if c.cell_type == "code" for o in c.outputs if o.output_type == "error"
+    ]
+    assert not errors, errors
+    assert path.read_bytes() == source, "the source notebook was modified"
+    assert _stray_files() == before, "the notebook wrote files into notebooks/"
+    print(f"{path.name}: executed in {elapsed:.1f} s")
