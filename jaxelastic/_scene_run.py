@@ -10,17 +10,17 @@ writes the outputs: a ParaView time series, PNG pictures and ``summary.json``.
 
 from __future__ import annotations
 
-import concurrent.futures
+import contextlib
 import fnmatch
 import functools
 import json
 import math
 import os
+import re
 import sys
 import time
 import warnings
-from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -28,6 +28,7 @@ import numpy as np
 
 from . import dynamics, loads
 from . import plot as _plot
+from ._where import WhereError, where_mask
 from .energy import energy
 from .io import MeshData, TimeSeriesWriter, _write_atomic, read_mesh
 from .loads import Dirichlet
@@ -35,20 +36,26 @@ from .materials import BUILTIN, Lame, lame
 from .mesh import Mesh, MeshError, box, cook_membrane, rectangle
 from .potential import Potential
 from .scenes import (
+    _V,
+    Built,
     Scene,
     SceneError,
     _axis_index,
     _check_dims,
     _import_callable,
     _n_positional,
-    _V,
-    _WhereError,
     load_scene,
-    where_mask,
 )
-from .solvers.newton import NewtonResult, NewtonSettings, SolveError, Status, newton
+from .solvers.newton import (
+    NewtonResult,
+    NewtonSettings,
+    SolveError,
+    Status,
+    make_linear,
+    newton,
+)
 
-__all__ = ["Built", "build", "run_scene"]
+__all__ = ["build", "run_scene"]
 
 # output file names (an input file with one of these names in --out is refused)
 _OUTPUT_PATTERNS = (
@@ -61,46 +68,6 @@ _OUTPUT_PATTERNS = (
     "tip_displacement.png",
     "energy.png",
 )
-
-
-class Built(NamedTuple):
-    """A scene turned into arrays and functions (everything :func:`run_scene` needs).
-
-    Attributes:
-        scene: the :class:`~jaxelastic.scenes.Scene`.
-        mesh: the rest mesh; mesh_data: the :class:`~jaxelastic.io.MeshData` of a mesh
-            file (named sets), or None for a generator.
-        psi: the strain-energy density; params: ``Lame(mu, lam)``.
-        potential: base :class:`~jaxelastic.potential.Potential` (``mass`` only in
-            dynamics, ``f_ext`` only with loads or gravity).
-        bc: Dirichlet data with the full prescribed displacement (statics) or at t = 0.
-        bc_fn: ``s ↦ Dirichlet``: in statics ``s`` is the load factor in [0, 1], in
-            dynamics the time [s].
-        time_dependent: whether ``bc_fn`` changes with time (dynamics).
-        settings: :class:`~jaxelastic.solvers.newton.NewtonSettings`.
-        integrator: :class:`~jaxelastic.dynamics.Integrator`, or None (statics).
-        x0: ``(n_nodes, dim)`` initial positions (the rest shape); v0: initial velocities
-            ``(n_nodes, dim)`` (zero on Dirichlet dofs), or None (statics).
-        probes: ``(node, point)`` per ``[output].probes`` entry (nearest node).
-        tip: node whose displacement is plotted over time (first probe, or the node
-            farthest from the Dirichlet nodes).
-    """
-
-    scene: Scene
-    mesh: Mesh
-    mesh_data: MeshData | None
-    psi: Callable
-    params: Lame
-    potential: Potential
-    bc: Dirichlet
-    bc_fn: Callable[[float], Dirichlet]
-    time_dependent: bool
-    settings: NewtonSettings
-    integrator: dynamics.Integrator | None
-    x0: jax.Array
-    v0: jax.Array | None
-    probes: list
-    tip: int
 
 
 # ----------------------------------------------------------------------------------------
@@ -134,8 +101,10 @@ def _psi_and_P(psi, F, params):
 def _material(v: _V, scene: Scene, dim: int):
     m = scene["material"]
     model = m["model"]
-    psi = BUILTIN[model] if ":" not in model else _import_callable(
-        v, "[material].model", model, scene.base_dir
+    psi = (
+        BUILTIN[model]
+        if ":" not in model
+        else _import_callable(v, "[material].model", model, scene.base_dir)
     )
     if "E" in m:
         try:
@@ -171,7 +140,7 @@ def _select_nodes(v: _V, key: str, sel, mesh: Mesh, md: MeshData | None) -> np.n
     elif "where" in sel:
         try:
             idx = np.flatnonzero(where_mask(sel["where"], X))
-        except (_WhereError, ValueError, IndexError, TypeError) as e:
+        except (WhereError, ValueError, IndexError, TypeError) as e:
             raise v.err(f"{key}.where: cannot evaluate {sel['where']!r}: {e}") from None
     else:
         name = sel["group"]
@@ -254,7 +223,9 @@ def _dirichlet(v: _V, scene: Scene, mesh: Mesh, md):
         idx = _select_nodes(v, f"{key}.nodes", d["nodes"], mesh, md)
         comps = d.get("components")
         comps = None if comps is None else [_axis_index(a) for a in comps]
-        u, dep = _displacement_fn(v, f"{key}.displacement", d.get("displacement"), scene.base_dir, dim)
+        u, dep = _displacement_fn(
+            v, f"{key}.displacement", d.get("displacement"), scene.base_dir, dim
+        )
         ramp = d.get("ramp_time")
         time_dep |= dep or ramp is not None
         entries.append((key, idx, comps, u, ramp))
@@ -336,7 +307,9 @@ def build(scene) -> Built:
     f_ext = _external_forces(v, scene, mesh, md)
     integ = scene["integrator"]
     dtype = mesh.points.dtype
-    settings = NewtonSettings(**scene["solver"])
+    solver_opts = dict(scene["solver"])
+    linear_kind = solver_opts.pop("linear", "auto")
+    settings = NewtonSettings(**solver_opts)
     X = np.asarray(mesh.points)
     pot = Potential(
         mesh=mesh,
@@ -386,6 +359,7 @@ def build(scene) -> Built:
         bc_fn=bc_fn,
         time_dependent=time_dep,
         settings=settings,
+        linear=make_linear(mesh, bc, linear_kind),
         integrator=integrator,
         x0=mesh.points,
         v0=v0,
@@ -399,9 +373,9 @@ def build(scene) -> Built:
 # ----------------------------------------------------------------------------------------
 
 
-def _step_and_energies(base: Potential, state, bc, integ, settings):
+def _step_and_energies(base: Potential, state, bc, integ, settings, linear=None):
     """One time step plus the energies of the new state (one compiled function)."""
-    new, res = dynamics.step(base, state, bc, integ, settings)
+    new, res = dynamics.step(base, state, bc, integ, settings, linear)
     ke = dynamics.kinetic_energy(base.mass, new.v)
     el = energy(base.psi, new.x, base.mesh, base.params)
     ext = (
@@ -412,8 +386,14 @@ def _step_and_energies(base: Potential, state, bc, integ, settings):
     return new, res, jnp.stack([ke, el, ext])
 
 
-_step_jit = jax.jit(_step_and_energies, static_argnames=("integ", "settings"))
-_newton_jit = jax.jit(newton, static_argnames=("settings",))
+_step_jit = jax.jit(_step_and_energies, static_argnames=("integ", "settings", "linear"))
+_newton_jit = jax.jit(newton, static_argnames=("settings", "linear"))
+_energy_jit = jax.jit(energy, static_argnums=0)
+_reaction_jit = jax.jit(loads.reaction_force, static_argnums=0)
+
+
+def _elastic(built: Built, x) -> float:
+    return float(_energy_jit(built.psi, x, built.mesh, built.params))
 
 
 def _log(progress: bool, msg: str) -> None:
@@ -437,6 +417,17 @@ def _prepare_out(out_dir, scene: Scene, built_inputs=()) -> str:
             )
     os.makedirs(out, exist_ok=True)
     return out
+
+
+def _remove_stale(out: str, basename: str, count: int) -> None:
+    """Delete ``basename_NNNN.vtu`` files with N ≥ count left by an earlier, longer run
+    into the same directory (only names matching that exact pattern)."""
+    pat = re.compile(rf"^{re.escape(basename)}_(\d{{4,}})\.vtu$")
+    for name in os.listdir(out):
+        m = pat.match(name)
+        if m and int(m.group(1)) >= count:
+            with contextlib.suppress(OSError):
+                os.remove(os.path.join(out, name))
 
 
 def _jsonable(x):
@@ -501,7 +492,9 @@ def _static_solve(built: Built, progress: bool, *, bc=None, what="static solve")
         p = static_pot if pot.f_ext is None or n == 1 else static_pot.replace(f_ext=s * pot.f_ext)
         bc_k = built.bc_fn(s) if bc is None else bc
         t0 = time.perf_counter()
-        res = jax.block_until_ready(_newton_jit(p, x, bc_k, settings=built.settings))
+        res = jax.block_until_ready(
+            _newton_jit(p, x, bc_k, settings=built.settings, linear=built.linear)
+        )
         st = _solve_stats(res, time.perf_counter() - t0)
         st["load_factor"] = s
         stats.append(st)
@@ -509,16 +502,6 @@ def _static_solve(built: Built, progress: bool, *, bc=None, what="static solve")
             raise SolveError(res, what=f"{what} (load step {k}/{n})" if n > 1 else what)
         x = res.x
     return x, stats, res
-
-
-_PARALLEL_STATIC = os.environ.get("JAXELASTIC_SERIAL_STATIC", "") in ("", "0")
-_EXECUTOR = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxelastic")
-
-
-def _timed_static(built: Built):
-    t0 = time.perf_counter()
-    x, stats, res = _static_solve(built, False, bc=built.bc, what="static comparison solve")
-    return x, stats, res, time.perf_counter() - t0
 
 
 def _probe_report(built: Built, x) -> list:
@@ -538,7 +521,7 @@ def _probe_report(built: Built, x) -> list:
 
 def _reaction(built: Built, x, bc: Dirichlet):
     pot = built.potential
-    r = loads.reaction_force(built.psi, x, built.mesh, built.params, bc, f_ext=pot.f_ext)
+    r = _reaction_jit(built.psi, x, built.mesh, built.params, bc, pot.f_ext)
     total = np.zeros(built.mesh.dim) if pot.f_ext is None else np.asarray(pot.f_ext).sum(0)
     return dict(reaction_force=np.asarray(r).tolist(), total_applied_load=total.tolist())
 
@@ -555,7 +538,7 @@ def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
         linear_iterations=sum(s["linear_iterations"] for s in stats),
         final_residual=stats[-1]["residual"],
         residual_history=np.asarray(res.residual_history)[: int(res.steps) + 1].tolist(),
-        elastic_energy=float(energy(built.psi, x, built.mesh, built.params)),
+        elastic_energy=_elastic(built, x),
         max_displacement=float(np.linalg.norm(np.asarray(x) - built.x0, axis=1).max()),
         **_reaction(built, x, built.bc),
     )
@@ -564,6 +547,7 @@ def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
     if scene["output"]["vtu"]:
         with TimeSeriesWriter(out, "static", built.mesh, built.psi, built.params) as w:
             w.write(1.0, x)
+        _remove_stale(out, "static", 1)
         summary["outputs"]["pvd"] = w.pvd_path
     if scene["output"]["png"]:
         fig = _plot.final_shape_figure(
@@ -584,13 +568,25 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
     n_steps = max(1, math.ceil(cfg["duration"] / h - 1e-9))
     state = dynamics.init_state(built.x0, built.v0)
     X = np.asarray(built.x0)
-    rec = {k: [] for k in ("t", "newton_steps", "linear_iterations", "residual",
-                           "line_search_cutbacks", "wall_time", "kinetic", "elastic",
-                           "external", "total")}
+    rec = {
+        k: []
+        for k in (
+            "t",
+            "newton_steps",
+            "linear_iterations",
+            "residual",
+            "line_search_cutbacks",
+            "wall_time",
+            "kinetic",
+            "elastic",
+            "external",
+            "total",
+        )
+    }
     tip_u = [np.zeros(built.mesh.dim)]
-    e0 = float(energy(built.psi, built.x0, built.mesh, built.params))
-    for k, val in (("t", 0.0), ("kinetic", float(dynamics.kinetic_energy(pot.mass, state.v))),
-                   ("elastic", e0), ("external", 0.0)):
+    e0 = _elastic(built, built.x0)
+    ke0 = 0.5 * float(np.sum(np.asarray(pot.mass)[:, None] * np.asarray(built.v0) ** 2))
+    for k, val in (("t", 0.0), ("kinetic", ke0), ("elastic", e0), ("external", 0.0)):
         rec[k].append(val)
     rec["total"].append(rec["kinetic"][0] + e0)
     writer = None
@@ -602,14 +598,9 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
         t_out += time.perf_counter() - t0
     below = 0
     settled_at = None
-    static_job = None
-    if cfg["compare_static"] and not built.time_dependent and _PARALLEL_STATIC:
-        # the static comparison does not depend on the trajectory: compile and solve it in
-        # a worker thread while the time loop runs (XLA releases the GIL while compiling)
-        static_job = _EXECUTOR.submit(_timed_static, built)
     bc = built.bc_fn(h) if built.time_dependent else built.bc
     _log(progress, f"{n_steps} time steps of h = {h:g} s (the first step includes compilation)")
-    bar = tqdm(total=n_steps, desc="time steps", unit="step", disable=not progress, leave=True)
+    bar = tqdm(total=n_steps, desc="time steps", unit="step", disable=not progress, mininterval=0.5)
     last_written = 0
     t_loop = time.perf_counter()
     failure = None
@@ -618,7 +609,7 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
         if built.time_dependent:
             bc = built.bc_fn(t_new)
         t0 = time.perf_counter()
-        new, res, en = _step_jit(pot, state, bc, integ, built.settings)
+        new, res, en = _step_jit(pot, state, bc, integ, built.settings, built.linear)
         en = np.asarray(jax.block_until_ready(en))
         wall = time.perf_counter() - t0
         status = int(res.status)
@@ -628,14 +619,20 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
             break
         state = new
         ke, el, ext = (float(a) for a in en)
-        for k, val in (("t", t_new), ("newton_steps", int(res.steps)),
-                       ("linear_iterations", int(res.linear_iterations)),
-                       ("residual", float(res.residual)),
-                       ("line_search_cutbacks", int(res.line_search_cutbacks)),
-                       ("wall_time", wall), ("kinetic", ke), ("elastic", el),
-                       ("external", ext), ("total", ke + el + ext)):
+        for k, val in (
+            ("t", t_new),
+            ("newton_steps", int(res.steps)),
+            ("linear_iterations", int(res.linear_iterations)),
+            ("residual", float(res.residual)),
+            ("line_search_cutbacks", int(res.line_search_cutbacks)),
+            ("wall_time", wall),
+            ("kinetic", ke),
+            ("elastic", el),
+            ("external", ext),
+            ("total", ke + el + ext),
+        ):
             rec[k].append(val)
-        tip_u.append(np.asarray(state.x[built.tip]) - X[built.tip])
+        tip_u.append(np.asarray(state.x)[built.tip] - X[built.tip])
         ratio = ke / max(abs(el), np.finfo(float).tiny)
         below = below + 1 if ratio < cfg["settle_tol"] else 0
         done = cfg["settle"] and below >= cfg["settle_steps"]
@@ -644,11 +641,19 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
             writer.write(t_new, state.x, velocity=np.asarray(state.v))
             t_out += time.perf_counter() - t0
             last_written = n
-        bar.set_postfix(t=f"{t_new:.3g}", newton=int(res.steps), cg=int(res.linear_iterations),
-                        KE_el=f"{ratio:.1e}", refresh=False)
+        bar.set_postfix(
+            t=f"{t_new:.3g}",
+            newton=int(res.steps),
+            cg=int(res.linear_iterations),
+            KE_el=f"{ratio:.1e}",
+            refresh=False,
+        )
         bar.update(1)
         if done:
             settled_at = t_new
+            bar.total = n  # settled early: show the bar complete
+            bar.set_description("time steps (settled)", refresh=False)
+            bar.refresh()
             break
     bar.close()
     loop_wall = time.perf_counter() - t_loop
@@ -656,7 +661,9 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
         if last_written != len(rec["t"]) - 1 and len(rec["t"]) > 1:
             writer.write(rec["t"][-1], state.x, velocity=np.asarray(state.v))
         writer.close()
+        _remove_stale(out, "dynamic", len(writer.steps))
         summary["outputs"]["pvd"] = writer.pvd_path
+        summary["outputs"]["vtu_files"] = len(writer.steps)
     walls = rec["wall_time"]
     steady = float(np.median(walls[1:])) if len(walls) > 1 else float("nan")
     summary["timings"].update(
@@ -676,33 +683,30 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
         newton_steps_total=int(sum(rec["newton_steps"][0:])),
         linear_iterations_total=int(sum(rec["linear_iterations"])),
         final_residual=rec["residual"][-1] if steps_taken else None,
-        tip=dict(node=built.tip, rest_position=X[built.tip].tolist(),
-                 source="probe 0" if built.probes else "node farthest from the Dirichlet nodes",
-                 displacement=tip_u[-1].tolist()),
+        tip=dict(
+            node=built.tip,
+            rest_position=X[built.tip].tolist(),
+            source="probe 0" if built.probes else "node farthest from the Dirichlet nodes",
+            displacement=tip_u[-1].tolist(),
+        ),
         per_step=rec,
     )
     summary["probes"] = _probe_report(built, state.x)
     x_static = None
     if cfg["compare_static"] and failure is None:
+        _log(progress, "static solve of the same load (includes compilation) ...")
         t0 = time.perf_counter()
-        if static_job is not None:
-            _log(progress, "waiting for the static solve ...")
-            x_static, stats, res, wall = static_job.result()
-            summary["timings"]["static_solve_incl_compile"] = wall
-            summary["timings"]["static_solve_wait"] = time.perf_counter() - t0
-        else:
-            _log(progress, "static solve of the same load (includes compilation) ...")
-            x_static, stats, res = _static_solve(
-                built, progress, bc=built.bc_fn(rec["t"][-1]), what="static comparison solve"
-            )
-            summary["timings"]["static_solve_incl_compile"] = time.perf_counter() - t0
+        x_static, stats, res = _static_solve(
+            built, progress, bc=built.bc_fn(rec["t"][-1]), what="static comparison solve"
+        )
+        summary["timings"]["static_solve_incl_compile"] = time.perf_counter() - t0
         u_s = np.asarray(x_static) - X
         dist = np.linalg.norm(np.asarray(state.x) - np.asarray(x_static), axis=1)
         umax = float(np.linalg.norm(u_s, axis=1).max())
         tip_s = float(np.linalg.norm(u_s[built.tip]))
         summary["static"] = dict(
             **stats[-1],
-            elastic_energy=float(energy(built.psi, x_static, built.mesh, built.params)),
+            elastic_energy=_elastic(built, x_static),
             tip_displacement=u_s[built.tip].tolist(),
             max_displacement=umax,
             probes=_probe_report(built, x_static),
@@ -719,6 +723,7 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
             t0 = time.perf_counter()
             with TimeSeriesWriter(out, "static", built.mesh, built.psi, built.params) as w:
                 w.write(rec["t"][-1], x_static)
+            _remove_stale(out, "static", 1)
             t_out += time.perf_counter() - t0
     if ocfg["png"] and steps_taken:
         t0 = time.perf_counter()
@@ -730,13 +735,20 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
                 built.mesh, shapes, title=f"{scene.name}: final shape"
             ),
             "tip_displacement.png": _plot.tip_displacement_figure(
-                rec["t"], np.asarray(tip_u),
+                rec["t"],
+                np.asarray(tip_u),
                 static=None if x_static is None else np.asarray(x_static)[built.tip] - X[built.tip],
                 title=f"{scene.name}: displacement of node {built.tip} at "
-                      f"{np.round(X[built.tip], 4).tolist()}",
+                f"{np.round(X[built.tip], 4).tolist()}",
             ),
             "energy.png": _plot.energy_figure(
-                rec["t"], {k: rec[k] for k in ("kinetic", "elastic", "external", "total")},
+                rec["t"],
+                {
+                    "kinetic": rec["kinetic"],
+                    "elastic": rec["elastic"],
+                    r"load potential $-f_{ext} \cdot u$": rec["external"],
+                    "total": rec["total"],
+                },
                 settle_tol=cfg["settle_tol"] if cfg["settle"] else None,
                 title=f"{scene.name}: energies",
             ),
@@ -780,10 +792,19 @@ def run_scene(scene, out_dir, progress: bool = True) -> dict:
         scene=scene.to_dict(),
         scene_file=scene.source,
         status="running",
-        mesh=dict(dim=built.mesh.dim, n_nodes=built.mesh.n_nodes, n_cells=built.mesh.n_cells,
-                  element=built.mesh.element, n_dirichlet_dofs=int(np.asarray(built.bc.mask).sum())),
-        material=dict(model=scene["material"]["model"], mu=float(built.params.mu),
-                      lam=float(built.params.lam), density=scene["material"].get("density")),
+        mesh=dict(
+            dim=built.mesh.dim,
+            n_nodes=built.mesh.n_nodes,
+            n_cells=built.mesh.n_cells,
+            element=built.mesh.element,
+            n_dirichlet_dofs=int(np.asarray(built.bc.mask).sum()),
+        ),
+        material=dict(
+            model=scene["material"]["model"],
+            mu=float(built.params.mu),
+            lam=float(built.params.lam),
+            density=scene["material"].get("density"),
+        ),
         solver=built.settings._asdict(),
         integrator=None if built.integrator is None else built.integrator._asdict(),
         timings=dict(build=time.perf_counter() - t0),
@@ -805,4 +826,3 @@ def run_scene(scene, out_dir, progress: bool = True) -> dict:
     summary["timings"]["total"] = time.perf_counter() - t_start
     _write_json(summary_path, summary)
     return _jsonable(summary)
-

@@ -206,6 +206,9 @@ def _run(args) -> int:
     except SolveError as e:
         print(f"jaxelastic: solve failed: {e}", file=sys.stderr)
         return 1
+    except OSError as e:  # e.g. an output directory that cannot be created or written
+        print(f"jaxelastic: error: {e}", file=sys.stderr)
+        return 2
     if not args.no_progress:
         print(_highlights(summary))
         print(f"  wall time of the command: {time.perf_counter() - t0:.1f} s")

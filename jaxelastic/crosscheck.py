@@ -113,9 +113,10 @@ def _random_rotation(dim: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def _diag(dim: int, values) -> np.ndarray:
-    """``diag(values)`` padded with ones to ``dim`` (first entries are used)."""
+    """``diag(values[:dim])``, padded with ones when fewer than ``dim`` values are given."""
+    vals = list(values)[:dim]
     v = np.ones(dim)
-    v[: len(values)] = values[:dim]
+    v[: len(vals)] = vals
     return np.diag(v)
 
 
@@ -295,7 +296,8 @@ def crosscheck(dims=(2, 3), models=None, params: Lame | None = None) -> list[dic
     Args:
         dims: spatial dimensions to check, a subset of ``(2, 3)``.
         models: built-in model names (default: all of :data:`MODELS`).
-        params: Lamé parameters (default: ``lame(E=1e5, ν=0.3)``, μ ≈ 3.8e4, λ ≈ 5.8e4).
+        params: scalar Lamé parameters (default: ``lame(E=1e5, ν=0.3)``: μ ≈ 3.8e4,
+            λ ≈ 5.8e4); μ is also the absolute scale of the P comparison.
 
     Returns:
         A list of dicts with keys ``model`` (str), ``dim`` (int), ``check`` (``"P"``,
@@ -311,11 +313,11 @@ def crosscheck(dims=(2, 3), models=None, params: Lame | None = None) -> list[dic
         raise RuntimeError(
             "crosscheck needs float64: call jax.config.update('jax_enable_x64', True) first"
         )
-    dims = tuple(int(d) for d in dims)
+    dims = tuple(dict.fromkeys(int(d) for d in dims))  # de-duplicated, order kept
     bad_dims = [d for d in dims if d not in (2, 3)]
     if bad_dims:
         raise ValueError(f"dims must be 2 and/or 3, got {bad_dims}")
-    models = MODELS if models is None else tuple(models)
+    models = MODELS if models is None else tuple(dict.fromkeys(models))
     unknown = [m for m in models if m not in MODELS]
     if unknown:
         raise ValueError(f"unknown model(s) {unknown}; available: {list(MODELS)}")
@@ -381,6 +383,7 @@ def _write_json_atomic(path: str, rows: list[dict]) -> None:
             fh.write("\n")
             fh.flush()
             os.fsync(fh.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a report is meant to be read
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

@@ -27,7 +27,14 @@ import jax.numpy as jnp
 from .loads import Dirichlet
 from .potential import Potential
 from .potential import value as potential_value
-from .solvers.newton import NewtonResult, NewtonSettings, SolveError, Status, newton
+from .solvers.newton import (
+    NewtonResult,
+    NewtonSettings,
+    SolveError,
+    Status,
+    make_linear,
+    newton,
+)
 
 __all__ = [
     "Integrator",
@@ -118,6 +125,7 @@ def step(
     bc: Dirichlet,
     integ: Integrator,
     settings: NewtonSettings = NewtonSettings(),
+    linear=None,
 ) -> tuple[State, NewtonResult]:
     """Advance one time step (pure, jit-compatible).
 
@@ -126,6 +134,10 @@ def step(
         state: current :class:`State`.
         bc: Dirichlet data at time ``t + h``.
         integ: :class:`Integrator`; settings: Newton settings.
+        linear: optional :class:`~jaxelastic.solvers.host.HostLinearSolver` (static).
+
+    Newton starts from the inertial predictor x̃ (one Newton iteration fewer on smooth
+    motion), or from x_n when x̃ has non-finite energy (e.g. it would invert an element).
 
     Returns:
         ``(new_state, newton_result)``; on failure the state is not advanced (the status
@@ -135,12 +147,15 @@ def step(
         raise ValueError("dynamics needs lumped masses: Potential(mass=lumped_mass(...))")
     bdf2_now = state.n > 0
     pot = _step_potential(base, state, integ, bdf2_now)
-    res = newton(pot, state.x, bc, settings)
+    x_start = jnp.where(jnp.isfinite(potential_value(pot, pot.x_tilde)), pot.x_tilde, state.x)
+    res = newton(pot, x_start, bc, settings, linear)
     x_new = res.x
     h = integ.h
     if integ.method == "bdf2":
         v_new = jnp.where(
-            bdf2_now, (3.0 * x_new - 4.0 * state.x + state.x_prev) / (2.0 * h), (x_new - state.x) / h
+            bdf2_now,
+            (3.0 * x_new - 4.0 * state.x + state.x_prev) / (2.0 * h),
+            (x_new - state.x) / h,
         )
     else:
         v_new = (x_new - state.x) / h
@@ -157,6 +172,7 @@ def rollout(
     integ: Integrator,
     n_steps: int,
     settings: NewtonSettings = NewtonSettings(),
+    linear=None,
 ):
     """``n_steps`` steps under ``lax.scan`` (one compiled loop; jit it with static sizes).
 
@@ -171,7 +187,7 @@ def rollout(
 
     def body(carry, _):
         st, failed = carry
-        new, res = step(base, st, bc_fn(st.t + integ.h), integ, settings)
+        new, res = step(base, st, bc_fn(st.t + integ.h), integ, settings, linear)
         failed = failed | (res.status != Status.SUCCESS)
         new = jax.tree_util.tree_map(lambda a, b: jnp.where(failed, b, a), new, st)
         return (new, failed), (new.x, res.status, res.steps, res.linear_iterations)
@@ -180,7 +196,7 @@ def rollout(
     return final, ys
 
 
-_step_jit = jax.jit(step, static_argnames=("integ", "settings"))
+_step_jit = jax.jit(step, static_argnames=("integ", "settings", "linear"))
 
 
 def simulate(
@@ -191,6 +207,7 @@ def simulate(
     n_steps: int,
     *,
     settings: NewtonSettings = NewtonSettings(),
+    linear="auto",
     callback: Callable[[State, NewtonResult], None] | None = None,
     progress: bool = True,
     throw: bool = True,
@@ -200,6 +217,10 @@ def simulate(
     Args:
         bc: fixed Dirichlet data, or a Python function ``t ↦ Dirichlet``.
         callback: called after every successful step with ``(state, result)`` (outputs).
+        linear: ``"auto"``, ``"cg"``, ``"direct"``, ``"amg"`` or a prebuilt
+            :class:`~jaxelastic.solvers.host.HostLinearSolver` (see
+            :func:`~jaxelastic.solvers.newton.make_linear`); the Dirichlet mask must not
+            change over time.
         throw: raise :class:`SolveError` on a failed step (else stop and return).
 
     Returns:
@@ -214,7 +235,9 @@ def simulate(
         t_next = float(state.t) + integ.h
         bc_now = bc(t_next) if callable(bc) else bc
         t0 = time.perf_counter()
-        new, res = _step_jit(base, state, bc_now, integ, settings)
+        if isinstance(linear, str):
+            linear = make_linear(base.mesh, bc_now, linear)
+        new, res = _step_jit(base, state, bc_now, integ, settings, linear)
         jax.block_until_ready(new)
         wall = time.perf_counter() - t0
         status = int(res.status)
@@ -237,5 +260,3 @@ def simulate(
         if callback is not None:
             callback(state, res)
     return state, stats
-
-

@@ -103,20 +103,30 @@ def element_forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     (Element *forces* are the negatives; this is the quantity that gets assembled.)
     """
     xe = x[mesh.cells]
-    return _per_cell(_element_force(psi), params, mesh.n_cells)(
-        xe, mesh.dN, mesh.weights, params
-    )
+    return _per_cell(_element_force(psi), params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)
+
+
+_MAX_UNROLLED_VALENCE = 256  # above this, gather (n_nodes, valence, d) then sum
 
 
 def assemble(mesh, per_element: jax.Array) -> jax.Array:
     """Sum per-element nodal vectors ``(n_cells, k, d)`` into ``(n_nodes, d)``.
 
-    Uses the precomputed node→slot incidence table (a gather and a dense sum), which on
-    XLA:CPU is faster than an unsorted scatter-add.
+    Uses the precomputed node→slot incidence table: one gather per valence column, summed
+    in column order (XLA fuses them into a single loop with no ``(n_nodes, valence, d)``
+    intermediate). Measured by ``scripts/bench_kernels.py``: 3–6× faster at 10⁵–10⁶ cells
+    than a gather-then-sum, and faster than an unsorted scatter-add on XLA:CPU.
     """
     c, k, d = per_element.shape
-    flat = jnp.concatenate([per_element.reshape(c * k, d), jnp.zeros((1, d), per_element.dtype)])
-    return flat[mesh.incidence].sum(axis=1)
+    flat = per_element.reshape(c * k, d)
+    inc = mesh.incidence  # (n_nodes, valence); padding entries are c*k (out of range)
+    if inc.shape[1] > _MAX_UNROLLED_VALENCE:  # e.g. a fan of many cells around one node
+        padded = jnp.concatenate([flat, jnp.zeros((1, d), flat.dtype)])
+        return padded[inc].sum(axis=1)
+    out = flat.at[inc[:, 0]].get(mode="fill", fill_value=0)
+    for j in range(1, inc.shape[1]):
+        out = out + flat.at[inc[:, j]].get(mode="fill", fill_value=0)  # padding reads 0
+    return out
 
 
 def forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
@@ -143,9 +153,7 @@ def hvp(psi: Psi, x: jax.Array, v: jax.Array, mesh, params) -> jax.Array:
     Never forms a Hessian: per element, ``dP = jvp(∂ψ/∂F)(F; dF)`` with ``dF = Σ v_a ⊗ ∇N_a``.
     """
     xe, ve = x[mesh.cells], v[mesh.cells]
-    fn = jax.vmap(
-        _element_hvp(psi), in_axes=(0, 0, 0, 0, cell_params_axes(params, mesh.n_cells))
-    )
+    fn = jax.vmap(_element_hvp(psi), in_axes=(0, 0, 0, 0, cell_params_axes(params, mesh.n_cells)))
     return assemble(mesh, fn(xe, ve, mesh.dN, mesh.weights, params))
 
 
@@ -180,7 +188,5 @@ def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = Fa
             :func:`project_psd`), for Newton on indefinite configurations.
     """
     xe = x[mesh.cells]
-    K = _per_cell(_element_hessian(psi), params, mesh.n_cells)(
-        xe, mesh.dN, mesh.weights, params
-    )
+    K = _per_cell(_element_hessian(psi), params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)
     return project_psd(K) if project else K

@@ -58,9 +58,7 @@ class Dirichlet(NamedTuple):
 
 def no_dirichlet(mesh: Mesh) -> Dirichlet:
     """No prescribed dofs (free-floating body: only valid with inertia)."""
-    return Dirichlet(
-        mask=jnp.zeros(mesh.points.shape, dtype=bool), values=jnp.asarray(mesh.points)
-    )
+    return Dirichlet(mask=jnp.zeros(mesh.points.shape, dtype=bool), values=jnp.asarray(mesh.points))
 
 
 def _node_array(nodes, n: int) -> np.ndarray:

@@ -197,11 +197,7 @@ def stable_neo_hookean(F, params: Lame):
     alpha = 1.0 + params.mu / lam_p
     J = det(F)
     IC = jnp.sum(F * F)
-    return (
-        0.5 * params.mu * (IC - d)
-        + 0.5 * lam_p * (J - alpha) ** 2
-        - 0.5 * params.mu**2 / lam_p
-    )
+    return 0.5 * params.mu * (IC - d) + 0.5 * lam_p * (J - alpha) ** 2 - 0.5 * params.mu**2 / lam_p
 
 
 def stable_neo_hookean_log(F, params: Lame):

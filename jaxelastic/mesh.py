@@ -294,7 +294,7 @@ def rectangle(nx: int, ny: int, size=(1.0, 1.0), origin=(0.0, 0.0), **kw) -> Mes
 
 
 # Kuhn (Freudenthal) subdivision of the unit cube along the main diagonal 0→7: six tets,
-# positively oriented, conforming across neighbouring cubes (every cube uses the same split).
+# positively oriented. Corner c = bx + 2·by + 4·bz.
 _KUHN = np.array(
     [[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]]
 )
@@ -302,6 +302,9 @@ _KUHN = np.array(
 
 def box(nx: int, ny: int, nz: int, size=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), **kw) -> Mesh:
     """Structured tetrahedral mesh of a box: ``nx·ny·nz`` cubes, 6 conforming tets each.
+
+    Each cube is split into six tets along a diagonal (Kuhn/Freudenthal); the split is
+    mirrored in alternate cubes along each axis so the mesh has no preferred direction.
 
     Args:
         nx, ny, nz: cells along each axis.
@@ -322,11 +325,26 @@ def box(nx: int, ny: int, nz: int, size=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0),
 
     k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
     i, j, k = i.ravel(), j.ravel(), k.ravel()
-    # cube corner c = bx + 2·by + 4·bz
+    # Mirror the Kuhn split in every other cube along each axis (corner bit b -> b xor
+    # parity): the mesh stays conforming (neighbours across a face share its mirror state
+    # in the two in-face axes, so they split that face along the same diagonal) and has no
+    # preferred diagonal direction, so a symmetric load gives a symmetric response.
+    pi, pj, pk = i & 1, j & 1, k & 1
     corners = np.stack(
-        [node(i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1)) for c in range(8)], axis=1
+        [
+            node(
+                i + ((c & 1) ^ pi),
+                j + (((c >> 1) & 1) ^ pj),
+                k + (((c >> 2) & 1) ^ pk),
+            )
+            for c in range(8)
+        ],
+        axis=1,
     )
-    tets = corners[:, _KUHN].reshape(-1, 4)
+    tets = corners[:, _KUHN]  # (cubes, 6, 4)
+    flip = ((pi + pj + pk) & 1).astype(bool)  # an odd number of mirrors reverses orientation
+    tets[flip] = tets[flip][:, :, [0, 2, 1, 3]]
+    tets = tets.reshape(-1, 4)
     return from_arrays(pts, tets, "tet4", **kw)
 
 
@@ -373,4 +391,3 @@ def boundary_facets(mesh: Mesh) -> np.ndarray:
 def boundary_nodes(mesh: Mesh) -> np.ndarray:
     """Sorted indices of nodes on the boundary, ``(n_boundary,)``."""
     return np.unique(boundary_facets(mesh))
-

@@ -18,6 +18,7 @@ __all__ = [
     "wire_edges",
     "view_axes",
     "shapes",
+    "shapes_3d",
     "final_shape_figure",
     "tip_displacement_figure",
     "energy_figure",
@@ -210,11 +211,65 @@ def shapes(ax, mesh, configurations, *, axes=None, wire: bool = True):
     return ax
 
 
+def shapes_3d(ax, mesh, configurations, *, wire: bool = True):
+    """Like :func:`shapes` on a matplotlib 3D ``Axes`` (``projection="3d"``)."""
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    configs = {k: np.asarray(v, dtype=float) for k, v in configurations.items()}
+    labels = list(configs)
+    feat = feature_edges(mesh)
+    if wire and len(labels) > 1:
+        xw = configs[labels[1]]
+        ax.add_collection3d(
+            Line3DCollection(xw[wire_edges(mesh)], colors="C0", linewidths=0.3, alpha=0.3)
+        )
+    for k, label in enumerate(labels):
+        st = dict(_SHAPE_STYLES[min(k, len(_SHAPE_STYLES) - 1)])
+        ax.add_collection3d(
+            Line3DCollection(
+                configs[label][feat],
+                colors=st["color"],
+                linewidths=st["lw"],
+                linestyles=st["ls"],
+                label=label,
+            )
+        )
+    allx = np.concatenate(list(configs.values()))
+    lo, hi = allx.min(axis=0), allx.max(axis=0)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(lo[2], hi[2])
+    ax.set_box_aspect(np.maximum(hi - lo, 1e-3 * (hi - lo).max()))
+    ax.view_init(elev=22, azim=-55)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.legend(loc="upper left", fontsize="small")
+    return ax
+
+
 def final_shape_figure(mesh, configurations, *, title: str | None = None):
-    """A standalone figure of :func:`shapes` (rest first, then deformed configurations)."""
-    rest = np.asarray(next(iter(configurations.values())))
-    i, j = view_axes(rest, list(configurations.values())[1:])
-    ext = np.ptp(np.concatenate([np.asarray(c) for c in configurations.values()]), axis=0)
+    """A standalone figure of the rest and deformed configurations (rest first).
+
+    2D: the outlines in the plane. 3D: a side view (:func:`shapes`) for an elongated body
+    (longest rest extent ≥ 2× the others, e.g. a beam), else a perspective view
+    (:func:`shapes_3d`).
+    """
+    confs = list(configurations.values())
+    rest = np.asarray(confs[0])
+    ext_rest = np.ptp(rest, axis=0)
+    srt = np.sort(ext_rest)[::-1]
+    if mesh.dim == 3 and srt[0] < 2.0 * srt[1]:
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=(7.0, 6.0), layout="constrained")
+        ax = fig.add_subplot(projection="3d")
+        shapes_3d(ax, mesh, configurations)
+        if title:
+            ax.set_title(title, fontsize="medium")
+        return fig
+    i, j = view_axes(rest, confs[1:])
+    ext = np.ptp(np.concatenate([np.asarray(c) for c in confs]), axis=0)
     aspect = float(ext[j] / max(ext[i], 1e-12))
     fig, ax = new_axes(figsize=(7.5, float(np.clip(7.0 * aspect + 1.2, 2.8, 7.0))))
     shapes(ax, mesh, configurations, axes=(i, j))
@@ -233,48 +288,55 @@ def tip_displacement_figure(t, u, *, static=None, title: str | None = None):
     t = np.asarray(t, dtype=float)
     u = np.asarray(u, dtype=float)
     fig, ax = new_axes(figsize=(7.5, 4.0))
-    for a in range(u.shape[1]):
-        if np.abs(u[:, a]).max() == 0 and (static is None or static[a] == 0):
-            continue
+    shown = [
+        a
+        for a in range(u.shape[1])
+        if np.abs(u[:, a]).max() > 0 or (static is not None and static[a] != 0)
+    ]
+    for a in shown:
         ax.plot(t, u[:, a], color=f"C{a}", lw=1.5, label=f"$u_{_AXIS_NAMES[a]}$")
-        if static is not None:
-            ax.axhline(static[a], color=f"C{a}", lw=1.0, ls="--", label=f"static $u_{_AXIS_NAMES[a]}$")
+    for a in shown if static is not None else ():
+        ax.axhline(static[a], color=f"C{a}", lw=1.0, ls="--", label=f"static $u_{_AXIS_NAMES[a]}$")
     ax.axhline(0.0, color="0.6", lw=0.8, zorder=0)
     ax.set_xlabel("time $t$ [s]")
     ax.set_ylabel("displacement [m]")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize="small", ncols=2)
+    ax.legend(loc="best", fontsize="small", ncols=2 if static is not None else 1)
     if title:
         ax.set_title(title, fontsize="medium")
     return fig
 
 
 def energy_figure(t, energies, *, settle_tol=None, title: str | None = None):
-    """Energies over time (left) and the kinetic/elastic ratio on a log scale (right).
+    """Energies over time; with ``settle_tol`` also the kinetic/elastic ratio (log scale)
+    against the settling threshold.
 
     Args:
         t: ``(n,)`` times [s]; energies: label → ``(n,)`` [J] with at least ``kinetic``
-            and ``elastic``; settle_tol: draw the settling threshold of the ratio.
+            and ``elastic``; settle_tol: the settling threshold of the ratio, or None.
     """
     t = np.asarray(t, dtype=float)
-    fig, (ax, ax2) = new_axes(2, figsize=(10.0, 3.8))
+    if settle_tol is None:
+        fig, ax = new_axes(figsize=(7.5, 3.8))
+    else:
+        fig, (ax, ax2) = new_axes(2, figsize=(11.0, 3.8))
     for label, e in energies.items():
         ax.plot(t, np.asarray(e, dtype=float), lw=1.4, label=label)
     ax.set_xlabel("time $t$ [s]")
     ax.set_ylabel("energy [J]")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize="small")
-    ke = np.asarray(energies["kinetic"], dtype=float)
-    el = np.abs(np.asarray(energies["elastic"], dtype=float))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(el > 0, ke / el, np.nan)
-    ratio = np.where(ratio > 0, ratio, np.nan)
-    ax2.semilogy(t, ratio, color="C0", lw=1.4, label="kinetic / elastic")
+    ax.legend(loc="best", fontsize="small", ncols=2)
     if settle_tol is not None:
+        ke = np.asarray(energies["kinetic"], dtype=float)
+        el = np.abs(np.asarray(energies["elastic"], dtype=float))
+        ok = el > 1e-9 * max(float(el.max()), np.finfo(float).tiny)  # skip round-off at rest
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(ok & (ke > 0), ke / np.where(ok, el, 1.0), np.nan)
+        ax2.semilogy(t, ratio, color="C0", lw=1.4, label="kinetic / elastic")
         ax2.axhline(settle_tol, color="C3", ls="--", lw=1.0, label="settle tolerance")
-    ax2.set_xlabel("time $t$ [s]")
-    ax2.grid(alpha=0.3, which="both")
-    ax2.legend(loc="best", fontsize="small")
+        ax2.set_xlabel("time $t$ [s]")
+        ax2.grid(alpha=0.3, which="both")
+        ax2.legend(loc="best", fontsize="small")
     if title:
         fig.suptitle(title, fontsize="medium")
     return fig

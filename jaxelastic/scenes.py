@@ -77,12 +77,38 @@ arithmetic, comparisons, ``&``/``|``/``~``/``and``/``or``/``not``, indexing ``X[
 logical_and logical_or logical_not`` (also as ``np.abs`` …). A ``"module:function"`` is
 imported with the scene file's directory first on ``sys.path``; user materials receive
 ``params = Lame(mu, lam)``. A static scene needs a Dirichlet condition; all elastic
-parameters are validated with :func:`jaxelastic.materials.lame`.
+parameters are validated with ``jaxelastic.materials.lame``.
+
+Running a scene and reading its outputs
+---------------------------------------
+
+```
+jaxelastic run [SCENE] --out DIR [--set integrator.duration=1.0 ...] [--no-progress]
+python -m jaxelastic run twist --out results/twist      # a shipped scene by name
+jaxelastic scenes                                        # list the shipped scenes
+```
+
+In Python: ``summary = jaxelastic.scenes.run_scene("my.toml", "out")`` (enable float64
+first); ``load_scene`` and ``build`` give the validated scene and its arrays. ``DIR``
+receives, each file written atomically:
+
+* ``dynamic.pvd`` + ``dynamic_NNNN.vtu`` (every ``[output].every`` steps) and/or
+  ``static.pvd`` + ``static_0000.vtu``: open the ``.pvd`` in ParaView and apply *Warp By
+  Vector* with ``displacement``; cell data ``J``, ``green_strain``, ``stress_P``,
+  ``von_mises``, ``energy_density``; point data ``velocity`` in dynamics;
+* ``final_shape.png`` (rest, final and static shapes), and in dynamics
+  ``tip_displacement.png`` (first probe, or the node farthest from the supports) and
+  ``energy.png``;
+* ``summary.json``: ``scene`` (with defaults), ``mesh``, ``material``, ``solver``,
+  ``timings`` (build, first step including compilation, median step, static solve,
+  outputs, total), ``dynamic.per_step`` (time, Newton and CG iterations, residual,
+  kinetic/elastic/load-potential/total energy), ``static`` (iterations, residual
+  history, reaction force vs applied load), ``probes``, ``comparison`` (static vs
+  dynamic: max nodal distance, relative to the tip deflection).
 """
 
 from __future__ import annotations
 
-import ast
 import contextlib
 import copy
 import dataclasses
@@ -90,12 +116,24 @@ import importlib
 import inspect
 import math
 import os
+import re
 import sys
 import types
 from collections.abc import Callable, Mapping
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
-import numpy as np
+from ._where import WhereError, check_where, where_mask
+
+if TYPE_CHECKING:  # annotations only: importing this module does not import JAX
+    import jax
+
+    from .dynamics import Integrator
+    from .io import MeshData
+    from .loads import Dirichlet
+    from .materials import Lame
+    from .mesh import Mesh
+    from .potential import Potential
+    from .solvers.newton import NewtonSettings
 
 try:
     import tomllib
@@ -112,10 +150,16 @@ __all__ = [
     "shipped_scenes",
     "build",
     "run_scene",
+    "where_mask",
 ]
 
-SCENE_DOCS: str = (__doc__ or "").partition("Scene file reference\n--------------------\n")[2]
-"""The scene-file reference (Markdown), for the README."""
+SCENE_DOCS: str = re.sub(
+    r"^(\S.*)\n-{3,}$",
+    r"### \1",
+    "Scene file reference\n" + (__doc__ or "").partition("\n\nScene file reference\n")[2],
+    flags=re.MULTILINE,
+)
+"""The scene-file reference and how to run a scene (Markdown), for the README."""
 
 _SCENE_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scenes")
 _GENERATOR_DIM = {"box": 3, "rectangle": 2, "cook": 2}
@@ -148,6 +192,7 @@ _DYNAMIC_KEYS = (
     "compare_static",
 )
 _SOLVER_CHOICES = {
+    "linear": ("auto", "cg", "direct", "amg"),
     "hessian": ("hvp", "element", "projected"),
     "preconditioner": ("block_jacobi", "jacobi", "none"),
 }
@@ -361,168 +406,6 @@ def _n_positional(fn) -> int:
 
 
 # ----------------------------------------------------------------------------------------
-# the restricted expression language of `where = "..."`
-# ----------------------------------------------------------------------------------------
-
-_WHERE_FUNCS = {
-    name: getattr(np, name)
-    for name in (
-        "abs",
-        "sqrt",
-        "hypot",
-        "minimum",
-        "maximum",
-        "sin",
-        "cos",
-        "arctan2",
-        "isclose",
-        "logical_and",
-        "logical_or",
-        "logical_not",
-    )
-}
-_WHERE_KW = ("atol", "rtol")
-_BINOPS = {
-    ast.Add: np.add,
-    ast.Sub: np.subtract,
-    ast.Mult: np.multiply,
-    ast.Div: np.true_divide,
-    ast.FloorDiv: np.floor_divide,
-    ast.Mod: np.mod,
-    ast.Pow: np.power,
-    ast.BitAnd: np.logical_and,
-    ast.BitOr: np.logical_or,
-    ast.BitXor: np.logical_xor,
-}
-_CMPOPS = {
-    ast.Lt: np.less,
-    ast.LtE: np.less_equal,
-    ast.Gt: np.greater,
-    ast.GtE: np.greater_equal,
-    ast.Eq: np.equal,
-    ast.NotEq: np.not_equal,
-}
-
-
-class _WhereError(ValueError):
-    pass
-
-
-def _where_eval(node, env):
-    """Evaluate an allowed AST node; ``env`` is None for a structural check only."""
-    ev = lambda n: _where_eval(n, env)  # noqa: E731
-    if isinstance(node, ast.Expression):
-        return ev(node.body)
-    if isinstance(node, ast.Constant):
-        if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
-            raise _WhereError(f"constant {node.value!r} is not a number")
-        return float(node.value)
-    if isinstance(node, ast.Name):
-        if node.id == "pi":
-            return math.pi
-        if node.id not in ("X", "x", "y", "z"):
-            raise _WhereError(f"unknown name {node.id!r} (use X, x, y, z, pi)")
-        if env is None:
-            return None
-        if node.id not in env:
-            raise _WhereError(f"{node.id!r} is not defined for a {env['X'].shape[1]}D mesh")
-        return env[node.id]
-    if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
-        a, b = ev(node.left), ev(node.right)
-        return None if env is None else _BINOPS[type(node.op)](a, b)
-    if isinstance(node, ast.UnaryOp):
-        a = ev(node.operand)
-        if env is None:
-            return None
-        if isinstance(node.op, ast.USub):
-            return np.negative(a)
-        if isinstance(node.op, ast.UAdd):
-            return a
-        if isinstance(node.op, (ast.Invert, ast.Not)):
-            return np.logical_not(a)
-    if isinstance(node, ast.BoolOp):
-        vals = [ev(n) for n in node.values]
-        if env is None:
-            return None
-        f = np.logical_and if isinstance(node.op, ast.And) else np.logical_or
-        out = vals[0]
-        for val in vals[1:]:
-            out = f(out, val)
-        return out
-    if isinstance(node, ast.Compare) and all(type(o) in _CMPOPS for o in node.ops):
-        vals = [ev(node.left)] + [ev(n) for n in node.comparators]
-        if env is None:
-            return None
-        out = True
-        for op, a, b in zip(node.ops, vals[:-1], vals[1:], strict=True):
-            out = np.logical_and(out, _CMPOPS[type(op)](a, b))
-        return out
-    if isinstance(node, ast.Call):
-        f = node.func
-        if isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and f.value.id == "np":
-            fname = f.attr
-        elif isinstance(f, ast.Name):
-            fname = f.id
-        else:
-            raise _WhereError("only calls of the allowed NumPy functions are allowed")
-        if fname not in _WHERE_FUNCS:
-            raise _WhereError(
-                f"function {fname!r} is not allowed (allowed: {', '.join(_WHERE_FUNCS)})"
-            )
-        args = [ev(a) for a in node.args]
-        kw = {}
-        for k in node.keywords:
-            if k.arg not in _WHERE_KW:
-                raise _WhereError(f"keyword {k.arg!r} is not allowed")
-            kw[k.arg] = ev(k.value)
-        return None if env is None else _WHERE_FUNCS[fname](*args, **kw)
-    if isinstance(node, ast.Subscript):
-        base = ev(node.value)
-        index = _where_index(node.slice, env)
-        return None if env is None else base[index]
-    raise _WhereError(f"{type(node).__name__} is not allowed in a selection expression")
-
-
-def _where_index(node, env):
-    if isinstance(node, ast.Tuple):
-        return tuple(_where_index(e, env) for e in node.elts)
-    if isinstance(node, ast.Slice):
-        parts = [None if p is None else _where_int(p) for p in (node.lower, node.upper, node.step)]
-        return slice(*parts)
-    return _where_int(node)
-
-
-def _where_int(node):
-    neg = isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub)
-    n = node.operand if neg else node
-    if not (isinstance(n, ast.Constant) and type(n.value) is int):
-        raise _WhereError("indices must be integer constants or slices")
-    return -n.value if neg else n.value
-
-
-def _parse_where(v: _V, key: str, expr: str) -> ast.Expression:
-    try:
-        tree = ast.parse(expr, mode="eval")
-        _where_eval(tree, None)
-    except SyntaxError as e:
-        raise v.err(f"{key}: invalid expression {expr!r} ({e.msg})") from None
-    except _WhereError as e:
-        raise v.err(f"{key}: {e} in {expr!r}") from None
-    return tree
-
-
-def where_mask(expr: str, X: np.ndarray) -> np.ndarray:
-    """Evaluate a selection expression on rest positions ``X`` ``(n, dim)`` → ``(n,)`` bool."""
-    tree = ast.parse(expr, mode="eval")
-    X = np.asarray(X, dtype=float)
-    env = {"X": X, **{c: X[:, i] for i, c in enumerate("xyz"[: X.shape[1]])}}
-    out = np.broadcast_to(np.asarray(_where_eval(tree, env)), (X.shape[0],))
-    if out.dtype != bool:
-        raise _WhereError(f"the expression gives {out.dtype} values, not a boolean mask")
-    return out
-
-
-# ----------------------------------------------------------------------------------------
 # sections
 # ----------------------------------------------------------------------------------------
 
@@ -605,11 +488,18 @@ def _check_material(v: _V, x, base_dir: str):
     return out
 
 
+def _parse_where(v: _V, key: str, expr: str) -> None:
+    try:
+        check_where(expr)
+    except WhereError as e:
+        raise v.err(f"{key}: {e} in {expr!r}") from None
+
+
 def _check_selector(v: _V, key: str, x, checks: list):
     t = v.table(key, x, ("plane", "box", "group", "where"))
     if len(t) != 1:
         raise v.err(f"{key} needs exactly one of plane, box, group, where; got {sorted(t)}")
-    (kind, val), = t.items()
+    ((kind, val),) = t.items()
     k = f"{key}.{kind}"
     if kind == "plane":
         p = v.table(k, val, ("axis", "value", "tol"), ("axis", "value"))
@@ -638,7 +528,7 @@ def _check_displacement(v: _V, key: str, x, base_dir: str, checks: list):
         t = v.table(key, x, ("rotate",), ("rotate",))
         k = f"{key}.rotate"
         r = v.table(k, t["rotate"], ("axis", "angle_deg", "center", "scale"), ("angle_deg",))
-        out = {"axis": v.axis(f"{k}.axis", r.get("axis", "z"), checks)}
+        out = {"axis": v.axis(f"{k}.axis", r.get("axis", "z"), [])}  # checked as "rotate"
         out["angle_deg"] = v.number(f"{k}.angle_deg", r["angle_deg"])
         if "center" in r:
             out["center"] = v.vector(f"{k}.center", r["center"], checks)
@@ -699,9 +589,9 @@ def _check_solver(v: _V, x):
     from .solvers.newton import NewtonSettings
 
     key = "[solver]"
-    fields = NewtonSettings._fields
+    fields = ("linear",) + NewtonSettings._fields
     t = v.table(key, x, fields)
-    defaults = NewtonSettings._field_defaults
+    defaults = dict(NewtonSettings._field_defaults, linear="auto")
     out = {}
     for k, val in t.items():
         d, kk = defaults.get(k), f"{key}.{k}"
@@ -731,14 +621,19 @@ def _check_integrator(v: _V, x, base_dir: str, checks: list):
                 raise v.err(
                     f"unknown key {key}.{k} for type = 'static' (valid: {', '.join(_STATIC_KEYS)})"
                 )
-        return {"type": "static", "load_steps": v.integer(f"{key}.load_steps", x.get("load_steps", 1), ge=1)}
+        return {
+            "type": "static",
+            "load_steps": v.integer(f"{key}.load_steps", x.get("load_steps", 1), ge=1),
+        }
     t = v.table(key, x, _DYNAMIC_KEYS, ("h", "duration"))
     out = {"type": "dynamic"}
     out["h"] = v.number(f"{key}.h", t["h"], gt=0)
     out["duration"] = v.number(f"{key}.duration", t["duration"], gt=0)
     if out["duration"] < out["h"] * (1 - 1e-12):
         raise v.err(f"{key}.duration must be >= h = {out['h']!r}, got {out['duration']!r}")
-    out["method"] = v.string(f"{key}.method", t.get("method", "backward_euler"), ("backward_euler", "bdf2"))
+    out["method"] = v.string(
+        f"{key}.method", t.get("method", "backward_euler"), ("backward_euler", "bdf2")
+    )
     out["alpha"] = v.number(f"{key}.alpha", t.get("alpha", 0.0), ge=0)
     out["beta"] = v.number(f"{key}.beta", t.get("beta", 0.0), ge=0)
     out["settle"] = v.boolean(f"{key}.settle", t.get("settle", False))
@@ -779,6 +674,8 @@ def _check_dims(v: _V, checks, dim: int) -> None:
             raise v.err(f"{key} must be an axis of a {dim}D mesh (0..{dim - 1}), got {n}")
         if kind == "rotate" and dim == 2 and n != 2:
             raise v.err(f"{key}.axis must be 'z' (2) in 2D, got {n}")
+        if kind == "rotate" and n > 2:
+            raise v.err(f"{key}.axis must be 0, 1, 2 or 'x', 'y', 'z', got {n}")
 
 
 def _validate(v: _V, raw, base_dir: str):
@@ -928,5 +825,91 @@ def load_scene(
     return Scene(_freeze(data), label, path, bdir, dim, checks)
 
 
-# build and run live in a sibling module to keep this one about the schema
-from ._scene_run import Built, build, run_scene  # noqa: E402
+# ----------------------------------------------------------------------------------------
+# build and run (implemented in jaxelastic._scene_run, imported on first use)
+# ----------------------------------------------------------------------------------------
+
+
+class Built(NamedTuple):
+    """A scene turned into arrays and functions (everything :func:`run_scene` needs).
+
+    Attributes:
+        scene: the :class:`~jaxelastic.scenes.Scene`.
+        mesh: the rest mesh; mesh_data: the :class:`~jaxelastic.io.MeshData` of a mesh
+            file (named sets), or None for a generator.
+        psi: the strain-energy density; params: ``Lame(mu, lam)``.
+        potential: base :class:`~jaxelastic.potential.Potential` (``mass`` only in
+            dynamics, ``f_ext`` only with loads or gravity).
+        bc: Dirichlet data with the full prescribed displacement (statics) or at t = 0.
+        bc_fn: ``s ↦ Dirichlet``: in statics ``s`` is the load factor in [0, 1], in
+            dynamics the time [s].
+        time_dependent: whether ``bc_fn`` changes with time (dynamics).
+        settings: :class:`~jaxelastic.solvers.newton.NewtonSettings`.
+        linear: the linear solver (None = matrix-free CG, or a
+            :class:`~jaxelastic.solvers.host.HostLinearSolver`), from ``[solver].linear``.
+        integrator: :class:`~jaxelastic.dynamics.Integrator`, or None (statics).
+        x0: ``(n_nodes, dim)`` initial positions (the rest shape); v0: initial velocities
+            ``(n_nodes, dim)`` (zero on Dirichlet dofs), or None (statics).
+        probes: ``(node, point)`` per ``[output].probes`` entry (nearest node).
+        tip: node whose displacement is plotted over time (first probe, or the node
+            farthest from the Dirichlet nodes).
+    """
+
+    scene: Scene
+    mesh: Mesh
+    mesh_data: MeshData | None
+    psi: Callable
+    params: Lame
+    potential: Potential
+    bc: Dirichlet
+    bc_fn: Callable[[float], Dirichlet]
+    time_dependent: bool
+    settings: NewtonSettings
+    linear: Any
+    integrator: Integrator | None
+    x0: jax.Array
+    v0: jax.Array | None
+    probes: list
+    tip: int
+
+
+def build(scene) -> Built:
+    """Turn a scene (a :class:`Scene`, a path, a shipped name or a dict) into arrays.
+
+    The :class:`~jaxelastic.potential.Potential` holds only what the scene needs: no mass
+    in statics, no ``f_ext`` without loads or gravity.
+
+    Raises:
+        SceneError: problems only visible with the mesh (a selection that matches no
+            node, an unknown group, wrong vector lengths for a mesh file's dimension, a
+            user function returning the wrong shape, a material failing at F = I).
+    """
+    from ._scene_run import build as _build
+
+    return _build(scene)
+
+
+def run_scene(scene, out_dir, progress: bool = True) -> dict:
+    """Solve a scene and write its outputs into ``out_dir``; returns the summary dict.
+
+    Static scenes: Newton (``load_steps`` increments). Dynamic scenes: one jitted time
+    step per iteration of a host loop with a progress bar, stopping early once settled;
+    with ``compare_static`` also the static solution of the same load.
+
+    Writes (each file atomically): ``summary.json`` (the scene, timings, Newton and CG
+    iterations and energies per step, final residual, probes, static/dynamic difference);
+    with ``[output].vtu`` a ParaView series ``dynamic.pvd`` + ``dynamic_NNNN.vtu`` and/or
+    ``static.pvd`` + ``static_0000.vtu`` (displacement, velocity, J, Green strain, P,
+    von Mises stress, energy density); with ``[output].png`` ``final_shape.png`` and, for
+    dynamics, ``tip_displacement.png`` and ``energy.png``. ``out_dir`` is created; a
+    path that is a file is refused, and so is an input file (scene, mesh) that an output
+    would overwrite.
+
+    Raises:
+        SceneError: invalid scene or output directory.
+        SolveError: a Newton solve failed (``summary.json`` is still written, with
+            ``"status": "failed"`` and the error).
+    """
+    from ._scene_run import run_scene as _run
+
+    return _run(scene, out_dir, progress=progress)

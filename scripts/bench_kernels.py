@@ -5,7 +5,7 @@ mesh size (about 10k, 100k and 1M elements), in float64 on the default JAX devic
 
 * ``energy``            total energy (``jaxelastic.energy``);
 * ``forces``            autodiff forces (``jaxelastic.forces``: P = ∂ψ/∂F by autodiff,
-                        element forces, incidence-table gather assembly);
+                        element forces, ``assemble`` over the node→slot incidence table);
 * ``forces_handP``      the same machinery with P from ``reference.HAND_P[model]`` (injected
                         as the gradient of a ``custom_vjp`` pseudo-ψ, so only P changes);
 * ``forces_handP_cof``  neo-Hookean only: a hand P written with ``cof F / J`` instead of
@@ -13,17 +13,21 @@ mesh size (about 10k, 100k and 1M elements), in float64 on the default JAX devic
 * ``elem_forces``       ``element_forces`` alone, ``(n_cells, k, d)``: gather of x + arithmetic,
                         no assembly (the "per-element arithmetic alone");
 * ``elem_kernel``       the element kernel on pre-gathered ``x[cells]`` (pure arithmetic);
+* ``forces_gather_dense`` element forces + the previous assembly (gather a
+                        ``(n_nodes, valence, d)`` array from the incidence table, then sum);
 * ``forces_scatter``    element forces + unsorted ``.at[].add`` scatter;
 * ``forces_segsum``     element forces + ``jax.ops.segment_sum`` on sorted indices
                         (host-precomputed permutation);
 * ``forces_jaxgrad``    ``-jax.grad(energy)`` (JAX's own transpose/scatter path);
 * ``hvp``               Hessian-vector product; ``elem_hess`` / ``elem_hess_psd`` element
                         Hessians without / with PSD projection;
-* ``asm_gather`` / ``asm_scatter`` / ``asm_segsum``  the assembly alone of a given
-                        ``(n_cells, k, d)`` array (model independent, measured once per mesh).
+* ``asm_incidence`` / ``asm_gather_dense`` / ``asm_scatter`` / ``asm_segsum``  the assembly
+                        alone of a given ``(n_cells, k, d)`` array (model independent,
+                        measured once per mesh).
 
 Every kernel is ``jax.jit``-ed with the mesh (and all other arrays) as *arguments* — never
-closed over, so nothing is constant-folded; the compiled HLO size is reported as evidence.
+closed over, so nothing is constant-folded; the size of the lowered (StableHLO) text is
+reported as evidence (kB, independent of the mesh size when nothing is folded in).
 Compile time (lower + compile) is reported separately; run time is the median (and min) of
 several warm repeats after one warm-up call, synchronised with ``jax.block_until_ready``.
 Throughput is elements per second. Ratios reported: ``forces / forces_handP`` (target
@@ -122,6 +126,14 @@ def scatter_add(mesh, pe):
     return jnp.zeros((mesh.n_nodes, d), pe.dtype).at[mesh.cells.reshape(-1)].add(pe.reshape(-1, d))
 
 
+def gather_dense(mesh, pe):
+    """The previous ``assemble``: gather ``(n_nodes, valence, d)`` from the incidence table,
+    then sum over the valence axis (padding slot = an appended zero row)."""
+    c, k, d = pe.shape
+    flat = jnp.concatenate([pe.reshape(c * k, d), jnp.zeros((1, d), pe.dtype)])
+    return flat[mesh.incidence].sum(axis=1)
+
+
 def segsum_sorted(mesh, pe, perm, seg):
     """``segment_sum`` over slots sorted by node (``perm``: slot order, ``seg``: node ids)."""
     d = pe.shape[-1]
@@ -157,6 +169,9 @@ def model_kernels(name: str, psi) -> dict:
         {
             "elem_forces": lambda x, v, m, p, perm, seg: je.element_forces(psi, x, m, p),
             "elem_kernel": elem_kernel,
+            "forces_gather_dense": lambda x, v, m, p, perm, seg: (
+                -gather_dense(m, je.element_forces(psi, x, m, p))
+            ),
             "forces_scatter": lambda x, v, m, p, perm, seg: (
                 -scatter_add(m, je.element_forces(psi, x, m, p))
             ),
@@ -177,13 +192,15 @@ def model_kernels(name: str, psi) -> dict:
 
 
 ASSEMBLY = {
-    "asm_gather": lambda pe, m, perm, seg: je.assemble(m, pe),
+    "asm_incidence": lambda pe, m, perm, seg: je.assemble(m, pe),
+    "asm_gather_dense": lambda pe, m, perm, seg: gather_dense(m, pe),
     "asm_scatter": lambda pe, m, perm, seg: scatter_add(m, pe),
     "asm_segsum": lambda pe, m, perm, seg: segsum_sorted(m, pe, perm, seg),
 }
 
 FORCE_VARIANTS = (
     "forces_handP",
+    "forces_gather_dense",
     "forces_handP_cof",
     "forces_scatter",
     "forces_segsum",
@@ -297,12 +314,14 @@ RATIOS = (  # (printed label, numerator kernel, denominator kernel); "-" = assem
     ("f/handPcof", "forces", "forces_handP_cof"),
     ("f/elem", "forces", "elem_forces"),
     ("f/kernel", "forces", "elem_kernel"),
+    ("f/dense", "forces", "forces_gather_dense"),
     ("f/scatter", "forces", "forces_scatter"),
     ("f/segsum", "forces", "forces_segsum"),
     ("f/jaxgrad", "forces", "forces_jaxgrad"),
     ("f/energy", "forces", "energy"),
-    ("gath/scat", "-asm_gather", "-asm_scatter"),
-    ("gath/seg", "-asm_gather", "-asm_segsum"),
+    ("asm/dense", "-asm_incidence", "-asm_gather_dense"),
+    ("asm/scat", "-asm_incidence", "-asm_scatter"),
+    ("asm/seg", "-asm_incidence", "-asm_segsum"),
 )
 
 
@@ -310,7 +329,7 @@ def ratios(rows) -> list[dict]:
     """The issue's ratios per (model, dim, size), from median and from min times.
 
     ``f/handP = forces / forces_handP`` (target ≤ 1.1), ``f/elem = forces / elem_forces``
-    (target ≤ 1.25); ``gath/scat`` etc. compare the assembly alone (> 1: gather slower).
+    (target ≤ 1.25); ``asm/scat`` etc. compare the assembly alone (< 1: ``assemble`` faster).
     """
     by = {(r["model"], r["dim"], r["n_cells"], r["kernel"]): r for r in rows}
     out = []
@@ -335,26 +354,31 @@ def ratios(rows) -> list[dict]:
 
 
 def format_tables(rows, rats) -> str:
-    """Plain-text tables: median ms and Melem/s per kernel and size."""
+    """Plain-text tables: median and min ms and Melem/s per kernel and size, and ratios."""
     lines = []
     for model in dict.fromkeys(r["model"] for r in rows):
         for dim in sorted({r["dim"] for r in rows if r["model"] == model}):
             sel = [r for r in rows if r["model"] == model and r["dim"] == dim]
             sizes = sorted({r["n_cells"] for r in sel})
             title = "assembly alone" if model == "-" else model
-            lines.append(f"\n{title}, {dim}D — median ms / Melem/s (compile s at largest size)")
-            head = f"{'kernel':<18s}" + "".join(f"{s:>22,d}" for s in sizes) + f"{'compile':>10s}"
-            lines.append(head)
+            lines.append(
+                f"\n{title}, {dim}D — per size: median ms, min ms, Melem/s (from the median);"
+                " compile s at the largest size"
+            )
+            lines.append(f"{'kernel':<20s}" + "".join(f"{s:>28,d}" for s in sizes) + "   compile")
             for kernel in dict.fromkeys(r["kernel"] for r in sel):
                 cells, comp = [], ""
                 for s in sizes:
                     r = next((r for r in sel if r["n_cells"] == s and r["kernel"] == kernel), None)
                     if r is None:
-                        cells.append(f"{'skipped':>22s}")
+                        cells.append(f"{'skipped':>28s}")
                     else:
-                        cells.append(f"{r['median_s'] * 1e3:12.2f} /{r['elems_per_s'] / 1e6:7.2f}")
+                        cells.append(
+                            f"{r['median_s'] * 1e3:10.2f}{r['min_s'] * 1e3:10.2f}"
+                            f"{r['elems_per_s'] / 1e6:8.2f}"
+                        )
                         comp = f"{r['compile_s']:10.2f}"
-                lines.append(f"{kernel:<18s}" + "".join(cells) + comp)
+                lines.append(f"{kernel:<20s}" + "".join(cells) + comp)
     if rats:
         lines.append(
             "\nratios, median (min) times; targets: f/handP = forces/forces_handP ≤ 1.1, "
@@ -362,14 +386,14 @@ def format_tables(rows, rats) -> str:
         )
         labels = [lab for lab, _, _ in RATIOS if any(lab in e["ratios"] for e in rats)]
         lines.append(
-            f"{'model':<12s}{'dim':>4s}{'cells':>9s}" + "".join(f"{k:>14s}" for k in labels)
+            f"{'model':<16s}{'dim':>4s}{'cells':>9s}" + "".join(f"{k:>14s}" for k in labels)
         )
         for e in rats:
             vals = []
             for k in labels:
                 r = e["ratios"].get(k)
                 vals.append(f"{r['median']:7.2f} ({r['min']:4.2f})" if r else f"{'-':>14s}")
-            lines.append(f"{e['model']:<12s}{e['dim']:>4d}{e['n_cells']:>9d}" + "".join(vals))
+            lines.append(f"{e['model']:<16s}{e['dim']:>4d}{e['n_cells']:>9d}" + "".join(vals))
     return "\n".join(lines)
 
 

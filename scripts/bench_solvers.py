@@ -131,7 +131,7 @@ def worker(n: int, solver: str) -> dict:
     linear = None if solver == "cg" else HostLinearSolver.for_problem(mesh, bc, solver)
     settings = NewtonSettings(rtol=1e-8, max_steps=50)
     t0 = time.perf_counter()
-    cold = solve(pot, bc, settings=settings, linear=linear, throw=False)
+    solve(pot, bc, settings=settings, linear=linear, throw=False)
     t_cold = time.perf_counter() - t0
     warm = solve(pot, bc, settings=settings, linear=linear, throw=False)
     phases = _phase_split(pot, warm.x, bc, linear)
@@ -306,8 +306,10 @@ def main(argv=None) -> int:
         print("\nbackward-Euler step of the default scene (1,080 tets, h = 0.02 s):")
         for k, v in be.items():
             if isinstance(v, dict):
-                print(f"  {k:<28} cold {v['cold_s']:.2f} s, warm {v['warm_s'] * 1e3:.1f} ms, "
-                      f"{v['newton']} Newton steps")
+                print(
+                    f"  {k:<28} cold {v['cold_s']:.2f} s, warm {v['warm_s'] * 1e3:.1f} ms, "
+                    f"{v['newton']} Newton steps"
+                )
         parts = _run_sub(["parts"])
         result["parts"] = parts
         print("\ncost of optional parts (5,184 tets; ms per call, warm):")

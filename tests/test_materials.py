@@ -36,7 +36,12 @@ INVERTIBLE = [
 
 
 # --------------------------------------------------------------------------- evaluation kit
-@functools.partial(jax.jit, static_argnames="psi")
+# Compiled once per model and dimension, evaluated on many F: compile time is the cost, and
+# XLA's backend optimisation level 0 cuts it (same float64 arithmetic).
+_O0 = {"xla_backend_optimization_level": 0}
+
+
+@functools.partial(jax.jit, static_argnames="psi", compiler_options=_O0)
 def _eval(Fs, p, *, psi):
     def one(F):
         return psi(F, p), jax.grad(psi)(F, p), jax.hessian(psi)(F, p)
@@ -44,7 +49,7 @@ def _eval(Fs, p, *, psi):
     return jax.vmap(one)(Fs)
 
 
-@functools.partial(jax.jit, static_argnames="hand")
+@functools.partial(jax.jit, static_argnames="hand", compiler_options=_O0)
 def _eval_hand(Fs, p, *, hand):
     return jax.vmap(hand, in_axes=(0, None))(Fs, p)
 
@@ -293,6 +298,11 @@ def test_stvk_cannot_uninvert(d):
     F0 = _inverted_F(d)
     step = 1e-3 * P[1] / np.linalg.norm(P[1])
     assert np.linalg.det(F0 - step) < np.linalg.det(F0)
+
+
+def test_stable_neo_hookean_log_refuses_2d():
+    with pytest.raises(ValueError, match="3D only"):
+        M.stable_neo_hookean_log(jnp.eye(2), PARAMS)
 
 
 # --------------------------------------------------------------------------- known answers

@@ -1,9 +1,10 @@
 """Execute every notebook in ``notebooks/``: their claims are ``assert``s, so each is a test.
 
-The kernel is the interpreter running pytest (a throw-away kernel spec in a temp dir whose
-argv is ``sys.executable``), so a fresh ``python3 -m venv .venv && pip install -e .[dev]``
-works whatever kernels are installed globally or per user. Each notebook runs with a
-temporary working directory; the executed copy is never written back over the source.
+The kernel is the interpreter running pytest: a throw-away kernel spec (argv
+``sys.executable -m ipykernel_launcher``) in a temp dir put first on ``JUPYTER_PATH``, so a
+fresh ``python3 -m venv .venv && pip install -e .[dev]`` works whatever kernels are
+installed globally or per user. Each notebook runs in a temporary working directory, and
+the executed copy is never written back over the source.
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ import time
 import nbformat
 import pytest
 from jupyter_client.kernelspec import KernelSpecManager
-from jupyter_client.manager import AsyncKernelManager
 from nbclient import NotebookClient
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -27,11 +27,11 @@ CELL_TIMEOUT = 600  # seconds, per cell
 
 
 @pytest.fixture(scope="module")
-def kernel_spec_manager(tmp_path_factory) -> KernelSpecManager:
-    """A kernel spec that launches ipykernel with the interpreter running the tests."""
-    kernels = tmp_path_factory.mktemp("kernels")
-    spec_dir = kernels / KERNEL_NAME
-    spec_dir.mkdir()
+def jupyter_path(tmp_path_factory) -> pathlib.Path:
+    """A data dir holding a kernel spec that runs ipykernel with this very interpreter."""
+    data = tmp_path_factory.mktemp("jupyter")
+    spec_dir = data / "kernels" / KERNEL_NAME
+    spec_dir.mkdir(parents=True)
     spec = {
         "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
         "display_name": f"Python {sys.version_info.major}.{sys.version_info.minor} (tests)",
@@ -39,7 +39,7 @@ def kernel_spec_manager(tmp_path_factory) -> KernelSpecManager:
         "metadata": {"debugger": False},
     }
     (spec_dir / "kernel.json").write_text(json.dumps(spec, indent=1))
-    return KernelSpecManager(kernel_dirs=[str(kernels)])
+    return data
 
 
 def _stray_files() -> set[str]:
@@ -52,12 +52,13 @@ def _stray_files() -> set[str]:
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
-def test_notebook_executes(path, kernel_spec_manager, tmp_path, monkeypatch):
-    # Keep the kernel's runtime and IPython files out of $HOME, and let ipykernel pick its
-    # inline matplotlib backend even if the caller exported a non-interactive one.
+def test_notebook_executes(path, jupyter_path, tmp_path, monkeypatch):
+    # Find our kernel spec first; keep the kernel's connection and IPython files out of
+    # $HOME; let ipykernel pick its inline matplotlib backend even if the caller exported a
+    # non-interactive one.
+    monkeypatch.setenv("JUPYTER_PATH", str(jupyter_path))
     monkeypatch.setenv("JUPYTER_RUNTIME_DIR", str(tmp_path / "runtime"))
     monkeypatch.setenv("IPYTHONDIR", str(tmp_path / "ipython"))
-    monkeypatch.setenv("MPLCONFIGDIR", str(tmp_path / "mpl"))
     monkeypatch.setenv("PYDEVD_DISABLE_FILE_VALIDATION", "1")
     monkeypatch.delenv("MPLBACKEND", raising=False)
     workdir = tmp_path / "cwd"
@@ -67,10 +68,10 @@ def test_notebook_executes(path, kernel_spec_manager, tmp_path, monkeypatch):
     nb = nbformat.reads(source.decode("utf-8"), as_version=4)
     before = _stray_files()
 
-    km = AsyncKernelManager(kernel_name=KERNEL_NAME, kernel_spec_manager=kernel_spec_manager)
-    client = NotebookClient(
+    assert KernelSpecManager().get_kernel_spec(KERNEL_NAME).argv[0] == sys.executable
+
+    client = NotebookClient(  # owns (starts and shuts down) its kernel
         nb,
-        km=km,
         timeout=CELL_TIMEOUT,
         kernel_name=KERNEL_NAME,
         resources={"metadata": {"path": str(workdir)}},

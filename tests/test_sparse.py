@@ -87,6 +87,12 @@ def test_pattern_structure_and_bsr():
     np.testing.assert_array_equal(P.matrix(K.data[P.transpose]).toarray(), K.toarray().T)
     with pytest.raises(ValueError, match="entries"):
         P.assemble(Ke[:-1])
+    # diagonal slots, and adding a diagonal keeps the pattern
+    np.testing.assert_array_equal(K.data[P.diag_slots], K.diagonal())
+    m = np.arange(1.0, n * d + 1)
+    Km = P.assemble_full(Ke, diag=m)
+    np.testing.assert_allclose(Km.toarray(), P.assemble_full(Ke).toarray() + np.diag(m))
+    assert P.has_pattern(Km)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -253,3 +259,28 @@ def test_make_solver():
         make_solver("cholmod", mesh.points, fixed)
     with pytest.raises(RuntimeError, match="update"):
         DirectSolver().solve(b)
+
+
+def test_amg_2d():
+    mesh = jaxelastic.rectangle(12, 3, size=(4.0, 1.0))
+    fixed = _clamped(mesh)
+    P, Ke = _pattern_and_ke(mesh, mesh.points, fixed)
+    K = P.assemble(Ke)
+    b = np.zeros((mesh.n_nodes, 2))
+    b[:, 1] = -1.0
+    b = b.reshape(-1)
+    b[fixed] = 0.0
+    s = make_solver("amg", mesh.points, fixed, pattern=P, sa_options=dict(max_coarse=5))
+    s.update(K)
+    x, info = s.solve(b, rtol=1e-9)
+    assert info["converged"] and info["levels"] >= 2, info
+    np.testing.assert_allclose(x, np.linalg.solve(K.toarray(), b), rtol=1e-6, atol=1e-12)
+
+
+def test_cg_stops_on_negative_curvature():
+    K = sp.csr_matrix(np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
+    s = ScipyCGSolver()
+    s.update(K)
+    _, info = s.solve(np.array([1.0, -1.0, 0.5]), rtol=1e-10)
+    assert not info["converged"] and "negative curvature" in info["reason"]
+    assert info["iterations"] == 1

@@ -13,6 +13,8 @@ solved again; the call reports it.
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
 from .sparse import SparsityPattern, make_solver
@@ -36,9 +38,9 @@ class HostLinearSolver:
             (PyAMG smoothed aggregation with rigid-body modes, as a CG preconditioner).
         **opts: options of the underlying solver class.
 
-    Instances hash by identity: pass one to :func:`~jaxelastic.solvers.newton.solve` as
-    ``linear=`` and reuse it across solves of the same scene (one compilation, one
-    pattern analysis).
+    Instances compare equal (and hash alike) when built for the same connectivity, mask,
+    kind and options, so jitted solvers taking one as a static argument compile once per
+    scene even if the object is rebuilt; reuse one to also skip the pattern analysis.
     """
 
     def __init__(self, cells, points, fixed, kind: str = "direct", **opts):
@@ -53,6 +55,10 @@ class HostLinearSolver:
         self.fixed = fixed.reshape(-1)
         self.pattern = SparsityPattern.build(cells, n, d, self.fixed)
         self.solver = make_solver(kind, points=points, fixed=self.fixed, **opts)
+        h = hashlib.sha1()
+        for a in (np.ascontiguousarray(cells), np.ascontiguousarray(points), self.fixed):
+            h.update(a.tobytes())
+        self._key = (kind, n, d, h.hexdigest(), repr(sorted(opts.items())))
         self.calls = 0
         self.projected_calls = 0
 
@@ -62,12 +68,11 @@ class HostLinearSolver:
         return cls(mesh.cells, mesh.points, bc.mask, kind, **opts)
 
     def _matrix(self, Ke, mass_diag):
-        K = self.pattern.assemble(Ke)
-        if mass_diag is not None:
-            md = np.repeat(np.asarray(mass_diag, dtype=K.dtype), self.shape[1])
+        md = None
+        if mass_diag is not None and np.any(mass_diag):
+            md = np.repeat(np.asarray(mass_diag, dtype=np.float64), self.shape[1])
             md[self.fixed] = 0.0
-            K = K + _diag(md)
-        return K
+        return self.pattern.assemble(Ke, diag=md)  # keeps the pattern (AMG reuse)
 
     def __call__(self, Ke, mass_diag, rhs, rtol):
         """Solve ``K Δ = rhs`` (``rhs`` ``(n_nodes, dim)``, zero on fixed dofs).
@@ -91,11 +96,11 @@ class HostLinearSolver:
         x = np.where(self.fixed, 0.0, x).reshape(self.shape).astype(np.asarray(rhs).dtype)
         return x, np.int32(info.get("iterations", 1)), np.bool_(projected)
 
+    def __eq__(self, other) -> bool:
+        return isinstance(other, HostLinearSolver) and self._key == other._key
+
+    def __hash__(self) -> int:
+        return hash(self._key)
+
     def __repr__(self) -> str:
         return f"HostLinearSolver(kind={self.kind!r}, n_dofs={self.fixed.size})"
-
-
-def _diag(v):
-    import scipy.sparse as sp
-
-    return sp.diags(v, format="csr")

@@ -12,10 +12,12 @@ Each iteration:
    Jacobi preconditioning from element Hessians. Non-positive curvature is detected.
 3. Backtracking line search treating non-finite Π as +∞ (an inverting step of a model that
    is undefined at J ≤ 0 is cut back until no element inverts): Armijo on Π far from the
-   solution, decrease of the residual near it, where Π's round-off (~1e-16·|Π|) exceeds
+   solution, decrease of the residual near it, where Π's round-off (~1e-16·Σ_c|x_cᵀK_c x_c|,
+   far above 1e-16·|Π| near rest because ψ cancels large terms) exceeds
    the predicted decrease; steps that move Dirichlet dofs only need a finite Π.
 4. Convergence: ``‖g_free‖ ≤ max(atol, rtol·‖g‖_ref)`` with all Dirichlet dofs in place,
-   where ``‖g‖_ref`` is the largest free residual seen (or ‖f_ext‖).
+   where ``‖g‖_ref`` is the largest free residual seen, ‖f_ext‖, or the largest
+   right-hand side ``‖g_f + K_fD Δ_D‖`` (the force induced by a Dirichlet motion).
 
 Every solve returns a :class:`NewtonResult` with a :class:`Status`; :func:`solve` raises
 :class:`SolveError` on failure when ``throw=True`` (outside jit).
@@ -32,14 +34,30 @@ import jax.numpy as jnp
 from jax import lax
 
 from .. import potential as pot_mod
-from ..energy import assemble
-from ..kinematics import det, deformation_gradients
+from ..energy import assemble, hvp
+from ..kinematics import deformation_gradients, det
 from ..loads import Dirichlet
 from ..potential import Potential
 from .host import HostLinearSolver
 from .linear import CG_NEGATIVE_CURVATURE, CGResult, block_jacobi, cg, jacobi
 
-__all__ = ["Status", "NewtonSettings", "NewtonResult", "SolveError", "newton", "solve"]
+__all__ = [
+    "Status",
+    "NewtonSettings",
+    "NewtonResult",
+    "SolveError",
+    "newton",
+    "solve",
+    "make_linear",
+    "LINEAR_SOLVERS",
+    "AUTO_DIRECT_MAX_DOFS",
+]
+
+LINEAR_SOLVERS = ("auto", "cg", "direct", "amg")
+AUTO_DIRECT_MAX_DOFS = 10_000
+"""``linear="auto"``: sparse Cholesky up to this many dofs, AMG-preconditioned CG above
+(measured by ``scripts/bench_linear.py``: AMG is 20–70× faster than a direct factorisation
+from ~20k dofs on, and the factorisation's fill grows quickly in 3D)."""
 
 
 class Status(enum.IntEnum):
@@ -177,13 +195,10 @@ def newton(
     """
     s = settings
     if s.hessian not in ("hvp", "element", "projected"):
-        raise ValueError(
-            f"hessian must be 'hvp', 'element' or 'projected', got {s.hessian!r}"
-        )
+        raise ValueError(f"hessian must be 'hvp', 'element' or 'projected', got {s.hessian!r}")
     if s.preconditioner not in ("block_jacobi", "jacobi", "none"):
         raise ValueError(
-            "preconditioner must be 'block_jacobi', 'jacobi' or 'none', "
-            f"got {s.preconditioner!r}"
+            f"preconditioner must be 'block_jacobi', 'jacobi' or 'none', got {s.preconditioner!r}"
         )
     mask = bc.mask
     free = ~mask
@@ -198,6 +213,16 @@ def newton(
         if s.require_positive_J:
             v = jnp.where(_min_J(pot, x) > 0, v, jnp.inf)
         return jnp.where(jnp.isnan(v), jnp.inf, v), pot_mod.gradient(pot, x)
+
+    def _energy_scale(x, Ke):
+        if Ke is None:
+            xKx = jnp.abs(jnp.sum(x * hvp(pot.psi, x, x, pot.mesh, pot.params)))
+        else:
+            xe = x[pot.mesh.cells].reshape(pot.mesh.n_cells, -1)
+            xKx = jnp.sum(jnp.abs(jnp.einsum("ci,cij,cj->c", xe, Ke, xe)))
+        if pot.f_ext is not None:
+            xKx = xKx + jnp.abs(jnp.sum(pot.f_ext * x))
+        return xKx
 
     ref0 = _norm(pot.f_ext * fm) if pot.f_ext is not None else jnp.zeros((), dtype)
 
@@ -272,7 +297,11 @@ def newton(
         d_free = jnp.where(bad, fm * (M(-gf) if M is not None else -gf), d_free)
         step = d_free + dD
         slope = jnp.sum(g * step)
-        near = jnp.abs(slope) <= 1e-10 * jnp.maximum(jnp.abs(energy0), tiny)
+        # Round-off in Π is not ~eps·|Π|: ψ cancels terms of size ~F:C:F inside each
+        # element (e.g. μ(I_C − 2 tr S + d) near rest, where Π → 0), so the scale is
+        # Σ_c |x_cᵀK_c x_c| = Σ_c w|F:C:F| (translation invariant) plus |f_extᵀx|.
+        escale = jnp.maximum(jnp.abs(energy0), _energy_scale(x, Ke if need_Ke else None))
+        near = jnp.abs(slope) <= 1e-10 * jnp.maximum(escale, tiny)
 
         def trial(alpha):
             xt = x + alpha * step
@@ -299,20 +328,22 @@ def newton(
             ls_cond, ls_body, (one, *trial(one), jnp.asarray(0, jnp.int32))
         )
         neg = res.status == CG_NEGATIVE_CURVATURE
-        return xt, et, gt, acc, alpha, cuts, res.iterations, neg
+        return xt, et, gt, acc, alpha, cuts, res.iterations, neg, bn
 
     def cond(c):
         return c["status"] == _RUNNING
 
     def body(c):
         x, g, k = c["x"], c["g"], c["k"]
-        xt, et, gt, acc, alpha, cuts, lin, neg = newton_step(x, g, c["energy"], c["ref"])
+        xt, et, gt, acc, alpha, cuts, lin, neg, bn = newton_step(x, g, c["energy"], c["ref"])
         x_new = jnp.where(acc, xt, x)
         e_new = jnp.where(acc, et, c["energy"])
         g_new = jnp.where(acc, gt, g)
         rn = _norm(g_new * fm)
         dn = _norm(jnp.where(mask, xD - x_new, 0.0))
-        ref = jnp.maximum(c["ref"], rn)
+        # bn = ‖g_f + K_fD Δ_D‖ is the force a Dirichlet motion induces: the reference of a
+        # purely displacement-driven solve (whose free residual is 0 at the rest shape)
+        ref = jnp.maximum(jnp.maximum(c["ref"], rn), bn)
         st = status_of(rn, dn, ref, k + 1)
         st = jnp.where(acc, st, Status.LINE_SEARCH_FAILED)
         return dict(
@@ -370,13 +401,26 @@ def newton(
 _newton_jit = jax.jit(newton, static_argnames=("settings", "linear"))
 
 
+def make_linear(mesh, bc: Dirichlet, kind: str = "auto"):
+    """The linear-solver argument of :func:`newton` for a scene: None (matrix-free CG under
+    jit) for ``"cg"``, else a :class:`HostLinearSolver` (``"direct"``, ``"amg"``, or
+    ``"auto"``: direct up to :data:`AUTO_DIRECT_MAX_DOFS` dofs, AMG above)."""
+    if kind not in LINEAR_SOLVERS:
+        raise ValueError(f"linear solver must be one of {LINEAR_SOLVERS}, got {kind!r}")
+    if kind == "cg":
+        return None
+    if kind == "auto":
+        kind = "direct" if mesh.n_dofs <= AUTO_DIRECT_MAX_DOFS else "amg"
+    return HostLinearSolver.for_problem(mesh, bc, kind)
+
+
 def solve(
     pot: Potential,
     bc: Dirichlet,
     x0: jax.Array | None = None,
     *,
     settings: NewtonSettings = NewtonSettings(),
-    linear: HostLinearSolver | str | None = None,
+    linear: HostLinearSolver | str | None = "auto",
     throw: bool = True,
 ) -> NewtonResult:
     """Jitted :func:`newton` with wall-clock timing and loud failures.
@@ -384,9 +428,10 @@ def solve(
     Args:
         pot: the potential; bc: Dirichlet data; x0: initial positions (default: rest).
         settings: :class:`NewtonSettings`.
-        linear: None (matrix-free CG under jit), ``"direct"``/``"amg"`` (build a
-            :class:`HostLinearSolver` for this call), or a prebuilt one (reuse it across
-            solves of the same scene to compile and analyse the pattern once).
+        linear: ``"auto"`` (default: sparse Cholesky for small problems, AMG-CG for
+            large, see :func:`make_linear`), ``"cg"`` or None (matrix-free PCG under jit),
+            ``"direct"``, ``"amg"``, or a prebuilt :class:`HostLinearSolver` (reuse it
+            across solves of the same scene to skip the pattern analysis).
         throw: raise :class:`SolveError` unless the status is SUCCESS.
     """
     if x0 is None:
@@ -395,7 +440,7 @@ def solve(
     if x0.shape != pot.mesh.points.shape:
         raise ValueError(f"x0 must have shape {pot.mesh.points.shape}, got {x0.shape}")
     if isinstance(linear, str):
-        linear = HostLinearSolver.for_problem(pot.mesh, bc, linear)
+        linear = make_linear(pot.mesh, bc, linear)
     t0 = time.perf_counter()
     res = jax.block_until_ready(_newton_jit(pot, x0, bc, settings=settings, linear=linear))
     res = res._replace(wall_time=time.perf_counter() - t0)

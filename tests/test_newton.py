@@ -1,0 +1,380 @@
+"""Newton solver: patch tests, closed-form nonlinear solutions, convergence rate, statuses.
+
+Every distinct (ψ, settings, mesh shape, potential structure) compiles the Newton loop, so
+the tests share a few meshes (``rectangle(4, 4)``, ``box(3, 2, 2)``), one material
+parameter set (Python floats: weak-typed, so changing values never recompiles) and the
+default :class:`NewtonSettings` wherever possible.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+import jaxelastic as je
+from jaxelastic import loads as L
+from jaxelastic import materials as M
+from jaxelastic.kinematics import deformation_gradients
+from jaxelastic.solvers.newton import NewtonSettings, SolveError, Status, newton, solve
+
+E_MOD, NU = 1.0e4, 0.3
+MU, LAM = (float(v) for v in M.lame(E_MOD, NU))
+PARAMS = M.Lame(MU, LAM)
+DEFAULT = NewtonSettings()
+# exact element Hessians, no preconditioner, tight tolerance: used wherever the answer is
+# compared with an exact one (and for the quadratic-convergence test)
+TIGHT = NewtonSettings(rtol=1e-12, preconditioner="none")
+
+NONLINEAR = ["stvk", "neo_hookean", "stable_neo_hookean", "fixed_corotated", "corotated", "arap"]
+
+
+@pytest.fixture(scope="module")
+def rect():
+    return je.rectangle(4, 4)
+
+
+@pytest.fixture(scope="module")
+def blk():
+    """A 3 × 1 × 1 bar, element spacing (1, ½, ½)."""
+    return je.box(3, 2, 2, size=(3.0, 1.0, 1.0))
+
+
+def _mesh(rect, blk, dim):
+    return rect if dim == 2 else blk
+
+
+def _min_J(x, mesh):
+    return float(jnp.min(jnp.linalg.det(deformation_gradients(x, mesh)[:, 0])))
+
+
+# --------------------------------------------------------------------------------------
+# MacNeal & Harder (1985) membrane patch test, linear elasticity, plane stress
+# --------------------------------------------------------------------------------------
+
+
+def _macneal_harder_mesh():
+    pts = np.array(
+        [
+            [0.0, 0.0],
+            [0.24, 0.0],
+            [0.24, 0.12],
+            [0.0, 0.12],
+            [0.04, 0.02],
+            [0.18, 0.03],
+            [0.16, 0.08],
+            [0.08, 0.08],
+        ]
+    )
+    quads = [(0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7), (4, 5, 6, 7)]
+    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+    return je.from_arrays(pts, np.array(tris), orient="refuse")
+
+
+def test_macneal_harder_membrane_patch():
+    mesh = _macneal_harder_mesh()
+    mu, lam = (float(v) for v in M.lame(1.0e6, 0.25, dim=2, plane="stress"))
+    p = M.Lame(mu, lam)
+
+    def u_exact(X):
+        return 1e-3 * np.stack([X[:, 0] + X[:, 1] / 2, X[:, 1] + X[:, 0] / 2], axis=1)
+
+    bc = L.fix(mesh, [0, 1, 2, 3], displacement=u_exact)
+    pot = je.Potential(mesh=mesh, params=p, psi=M.linear)
+    res = solve(pot, bc, settings=DEFAULT)
+    X = np.asarray(mesh.points)
+    np.testing.assert_allclose(np.asarray(res.x) - X, u_exact(X), rtol=0, atol=1e-14)
+    # the stress is exact in every element (linear model: P = σ)
+    F = deformation_gradients(res.x, mesh)[:, 0]
+    P = np.asarray(jax.vmap(je.first_piola(M.linear), in_axes=(0, None))(F, p))
+    np.testing.assert_allclose(P[:, 0, 0], 4000.0 / 3.0, rtol=1e-9)
+    np.testing.assert_allclose(P[:, 1, 1], 4000.0 / 3.0, rtol=1e-9)
+    np.testing.assert_allclose(P[:, 0, 1], 400.0, rtol=1e-9)
+    np.testing.assert_allclose(P[:, 1, 0], 400.0, rtol=1e-9)
+
+
+# --------------------------------------------------------------------------------------
+# Nonlinear patch test: an affine boundary map is reproduced exactly inside
+# --------------------------------------------------------------------------------------
+
+
+def _affine(dim):
+    """A finite, rotated, sheared, stretched affine map F0 (det > 0) and a translation."""
+    if dim == 2:
+        U = np.array([[1.25, 0.1], [0.1, 0.85]])
+        t = 0.4
+        R = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+        c = np.array([0.3, -0.2])
+    else:
+        U = np.array([[1.2, 0.1, -0.05], [0.1, 0.9, 0.08], [-0.05, 0.08, 1.1]])
+        w = np.array([0.3, -0.2, 0.5])
+        K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        R = np.linalg.matrix_power(np.eye(3) + K / 64 + (K @ K) / (2 * 64**2), 64)
+        R = np.linalg.qr(R)[0] * np.sign(np.diag(np.linalg.qr(R)[1]))
+        c = np.array([0.3, -0.2, 0.1])
+    return R @ U, c
+
+
+def _patch_problem(mesh, name):
+    F0, c = _affine(mesh.dim)
+    X = np.asarray(mesh.points)
+    x_aff = X @ F0.T + c
+    bnd = je.mesh.boundary_nodes(mesh)
+    interior = np.setdiff1d(np.arange(mesh.n_nodes), bnd)
+    bc = L.fix(mesh, bnd, displacement=lambda Xb: Xb @ F0.T + c - Xb)
+    return x_aff, interior, bc
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("name", NONLINEAR)
+def test_affine_map_is_equilibrium(rect, blk, dim, name):
+    """Cheap half of the nonlinear patch test (no Newton compile): at x = F0·X + c the
+    interior nodal forces vanish for every material."""
+    mesh = _mesh(rect, blk, dim)
+    x_aff, interior, _ = _patch_problem(mesh, name)
+    f = np.asarray(je.forces(M.BUILTIN[name], jnp.asarray(x_aff), mesh, PARAMS))
+    scale = np.abs(
+        np.asarray(je.element_forces(M.BUILTIN[name], jnp.asarray(x_aff), mesh, PARAMS))
+    ).max()
+    assert scale > 1.0  # the elements are really stressed
+    np.testing.assert_allclose(f[interior], 0.0, atol=1e-11 * scale)
+
+
+def _check_patch_solve(mesh, name):
+    x_aff, interior, bc = _patch_problem(mesh, name)
+    # start from the rest shape with the interior perturbed (the boundary is moved by
+    # Newton's Dirichlet step): the solver must find the affine interior
+    rng = np.random.default_rng(0)
+    x0 = np.asarray(mesh.points).copy()
+    x0[interior] += 0.03 * rng.standard_normal((interior.size, mesh.dim))
+    pot = je.Potential(mesh=mesh, params=PARAMS, psi=M.BUILTIN[name])
+    res = solve(pot, bc, x0=x0, settings=TIGHT)
+    np.testing.assert_allclose(np.asarray(res.x)[interior], x_aff[interior], rtol=0, atol=1e-11)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_nonlinear_patch_neo_hookean(rect, blk, dim):
+    _check_patch_solve(_mesh(rect, blk, dim), "neo_hookean")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("name", [n for n in NONLINEAR if n != "neo_hookean"])
+def test_nonlinear_patch_all_materials(rect, blk, dim, name):
+    _check_patch_solve(_mesh(rect, blk, dim), name)
+
+
+# --------------------------------------------------------------------------------------
+# Uniaxial tension of a neo-Hookean block against the closed form
+# --------------------------------------------------------------------------------------
+
+
+def _uniaxial_bc(mesh, a):
+    d = mesh.dim
+    Lx = float(np.ptp(np.asarray(mesh.points)[:, 0]))
+    sets = [L.fix(mesh, L.nodes_on_plane(mesh, k, 0.0), components=(k,)) for k in range(d)]
+    right = L.nodes_on_plane(mesh, 0, Lx)
+    du = np.zeros(d)
+    du[0] = (a - 1.0) * Lx
+    pull = L.fix(mesh, right, components=(0,), displacement=du)
+    return L.combine(*sets, pull), pull
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_uniaxial_neo_hookean_closed_form(rect, blk, dim):
+    mesh = _mesh(rect, blk, dim)
+    a = 1.4
+    bc, pull = _uniaxial_bc(mesh, a)
+    pot = je.Potential(mesh=mesh, params=PARAMS, psi=M.neo_hookean)
+    res = solve(pot, bc, settings=TIGHT)
+
+    def lateral(b):
+        return MU * (b * b - 1.0) + LAM * np.log(a * b ** (dim - 1))
+
+    b = brentq(lateral, 0.3, 1.0, xtol=1e-15)
+    assert b < 0.95  # a real Poisson contraction
+    X = np.asarray(mesh.points)
+    expect = X * np.array([a] + [b] * (dim - 1))
+    np.testing.assert_allclose(np.asarray(res.x), expect, rtol=0, atol=1e-11)
+    # the nominal stress P11 = μ(a − b²/a) times the reference face area is the pull force
+    area = float(np.prod(np.ptp(X, axis=0)[1:]))
+    R = L.reaction_force(M.neo_hookean, res.x, mesh, PARAMS, pull)
+    np.testing.assert_allclose(float(R[0]), MU * (a - b * b / a) * area, rtol=1e-8)
+
+
+# --------------------------------------------------------------------------------------
+# Convergence rate, linear solvers, Hessian options
+# --------------------------------------------------------------------------------------
+
+
+def test_quadratic_convergence(blk):
+    bc, _ = _uniaxial_bc(blk, 1.4)
+    pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
+    res = solve(pot, bc, settings=TIGHT)
+    r = np.asarray(res.residual_history)[: int(res.steps) + 1]
+    r = r / r.max()
+    assert res.steps <= 8
+    # asymptotic regime: r_k < 0.1, and r_{k+1} above the round-off floor (~1e-13)
+    pairs = [(r[k], r[k + 1]) for k in range(len(r) - 1) if 0 < r[k] < 0.1 and r[k + 1] > 1e-11]
+    assert len(pairs) >= 2, r
+    ratios = [rk1 / rk**2 for rk, rk1 in pairs]
+    # linear convergence with rate 0.1 would give r_{k+1}/r_k² = 0.1/r_k > 100 here
+    assert max(ratios) < 10.0, (r, ratios)
+
+
+@pytest.mark.parametrize("pc", ["none", "jacobi", "block_jacobi"])
+def test_preconditioners_agree(blk, pc):
+    bc, _ = _uniaxial_bc(blk, 1.4)
+    pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
+    settings = TIGHT if pc == "none" else NewtonSettings(preconditioner=pc)
+    ref = solve(pot, bc, settings=TIGHT)
+    res = solve(pot, bc, settings=settings)
+    assert res.ok
+    np.testing.assert_allclose(np.asarray(res.x), np.asarray(ref.x), rtol=0, atol=1e-9)
+
+
+def test_projected_hessian_converges(blk):
+    """PSD-projected element Hessians: always a descent direction, possibly more steps."""
+    bc = L.combine(
+        L.fix(blk, L.nodes_on_plane(blk, 0, 0.0)),
+        L.fix(blk, L.nodes_on_plane(blk, 0, 3.0), displacement=[-1.2, 0.0, 0.4]),
+    )
+    pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
+    ref = solve(pot, bc, settings=TIGHT)
+    res = solve(pot, bc, settings=NewtonSettings(hessian="projected"))
+    assert res.ok and int(res.steps) >= int(ref.steps) - 1
+    np.testing.assert_allclose(np.asarray(res.x), np.asarray(ref.x), rtol=0, atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------
+# Status codes and failure reporting
+# --------------------------------------------------------------------------------------
+
+
+def test_max_steps_status_under_jit(rect):
+    """Under jit a failed solve returns its status instead of raising."""
+    bc, _ = _uniaxial_bc(rect, 1.4)
+    pot = je.Potential(mesh=rect, params=PARAMS, psi=M.neo_hookean)
+    jitted = jax.jit(newton, static_argnames=("settings",))
+    res = jitted(pot, rect.points, bc, settings=NewtonSettings(max_steps=1))
+    assert int(res.status) == Status.MAX_STEPS
+    assert int(res.steps) == 1
+    assert np.isfinite(np.asarray(res.x)).all()
+    assert not res.ok and "max_steps" in res.reason
+
+
+def _inverted_start(mesh):
+    """Rest shape with one interior corner node pushed through its neighbours."""
+    x0 = np.asarray(mesh.points).copy()
+    bnd = je.mesh.boundary_nodes(mesh)
+    i = np.setdiff1d(np.arange(mesh.n_nodes), bnd)[0]
+    x0[i, 0] += 1.5 * np.ptp(x0[:, 0]) / {2: 4, 3: 3}[mesh.dim]  # 1.5 element spacings
+    assert _min_J(jnp.asarray(x0), mesh) < 0
+    return x0
+
+
+def test_inverted_start_neo_hookean(blk):
+    bc = L.fix(blk, L.nodes_on_plane(blk, 0, 0.0))
+    pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
+    x0 = _inverted_start(blk)
+    res = solve(pot, bc, x0=x0, settings=TIGHT, throw=False)
+    assert int(res.status) == Status.INVERTED
+    assert int(res.steps) == 0
+    np.testing.assert_array_equal(np.asarray(res.x), x0)
+    with pytest.raises(SolveError, match="INVERTED"):
+        solve(pot, bc, x0=x0, settings=TIGHT, throw=True)
+
+
+def _psi_nan(F, p):
+    return jnp.nan * jnp.sum(F * F) * p.mu
+
+
+def test_nonfinite_status_and_error_message(rect):
+    bc = L.fix(rect, L.nodes_on_plane(rect, 0, 0.0))
+    pot = je.Potential(mesh=rect, params=PARAMS, psi=_psi_nan)
+    res = solve(pot, bc, throw=False)
+    assert int(res.status) == Status.NONFINITE
+    with pytest.raises(SolveError, match="NONFINITE") as info:
+        solve(pot, bc)
+    assert info.value.result.status == Status.NONFINITE
+
+
+def _neo_hookean_abs(F, p):
+    """A careless user model: neo-Hookean with ln|J| — finite garbage for J < 0."""
+    d = F.shape[0]
+    lnJ = jnp.log(jnp.abs(jnp.linalg.det(F)))
+    return 0.5 * p.mu * (jnp.sum(F * F) - d) - p.mu * lnJ + 0.5 * p.lam * lnJ**2
+
+
+POSJ = NewtonSettings(require_positive_J=True)
+
+
+def test_require_positive_J(rect):
+    bc = L.fix(rect, L.nodes_on_plane(rect, 0, 0.0))
+    pot = je.Potential(mesh=rect, params=PARAMS, psi=_neo_hookean_abs)
+    x0 = _inverted_start(rect)
+    assert np.isfinite(float(je.energy(_neo_hookean_abs, jnp.asarray(x0), rect, PARAMS)))
+    res = solve(pot, bc, x0=x0, settings=POSJ, throw=False)
+    assert int(res.status) == Status.INVERTED
+    # a strong compression from the rest shape: the flag keeps every iterate uninverted
+    bc2 = L.combine(bc, L.fix(rect, L.nodes_on_plane(rect, 0, 1.0), displacement=[-0.6, 0.2]))
+    res2 = solve(pot, bc2, settings=POSJ)
+    assert _min_J(res2.x, rect) > 0
+
+
+# --------------------------------------------------------------------------------------
+# Loads and reactions; Dirichlet-only loading
+# --------------------------------------------------------------------------------------
+
+
+def test_reaction_balances_gravity_and_traction(blk):
+    beam = blk
+    clamp = L.fix(beam, L.nodes_on_plane(beam, 0, 0.0))
+    f = L.gravity_load(beam, 50.0, [0.0, 0.0, -9.81])
+    tip = L.facets_where(beam, lambda X: np.isclose(X[:, 0], 3.0))
+    f = f + L.traction_load(beam, tip, [0.0, 300.0, -500.0])
+    pot = je.Potential(mesh=beam, params=PARAMS, f_ext=jnp.asarray(f), psi=M.neo_hookean)
+    res = solve(pot, clamp)
+    x = np.asarray(res.x)
+    assert x[:, 2].min() < -0.05  # it really bends
+    R = np.asarray(L.reaction_force(M.neo_hookean, res.x, beam, PARAMS, clamp, f_ext=pot.f_ext))
+    total = f.sum(axis=0)
+    np.testing.assert_allclose(R, -total, rtol=0, atol=1e-7 * np.abs(total).max())
+
+
+def _isochoric_neo_hookean(F, p):
+    """ψ = μ/2 (J^{-2/d} I_C − d) + κ/2 (J − 1)², κ = λ + 2μ/d; +∞ for J ≤ 0."""
+    d = F.shape[0]
+    J = jnp.linalg.det(F)
+    ok = J > 0
+    Js = jnp.where(ok, J, 1.0)
+    kappa = p.lam + 2.0 * p.mu / d
+    psi = 0.5 * p.mu * (Js ** (-2.0 / d) * jnp.sum(F * F) - d) + 0.5 * kappa * (Js - 1.0) ** 2
+    return jnp.where(ok, psi, jnp.inf)
+
+
+def test_twist_dirichlet_only(blk):
+    """Twist one end face of a bar by 90° (no loads, only prescribed positions)."""
+    beam = blk
+    theta = np.pi / 2
+
+    def twist(X):
+        y, z = X[:, 1] - 0.5, X[:, 2] - 0.5
+        c, s = np.cos(theta), np.sin(theta)
+        return np.stack([0 * y, c * y - s * z - y, s * y + c * z - z], axis=1)
+
+    bc = L.combine(
+        L.fix(beam, L.nodes_on_plane(beam, 0, 0.0)),
+        L.fix(beam, L.nodes_on_plane(beam, 0, 3.0), displacement=twist),
+    )
+    pot = je.Potential(mesh=beam, params=PARAMS, psi=_isochoric_neo_hookean)
+    res = solve(pot, bc)
+    assert _min_J(res.x, beam) > 0
+    mid = L.nodes_on_plane(beam, 0, 2.0)
+    # the section at x = 2 has turned in the same sense (by roughly 2/3 of θ)
+    X = np.asarray(beam.points)[mid]
+    x = np.asarray(res.x)[mid]
+    ang = np.arctan2(x[:, 2] - 0.5, x[:, 1] - 0.5) - np.arctan2(X[:, 2] - 0.5, X[:, 1] - 0.5)
+    ang = np.angle(np.exp(1j * ang))
+    far = np.hypot(X[:, 1] - 0.5, X[:, 2] - 0.5) > 0.1
+    assert np.all((ang[far] > 0.3 * theta) & (ang[far] < 0.9 * theta)), ang[far]

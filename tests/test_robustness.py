@@ -1,0 +1,300 @@
+"""Robustness: recovery from crushed / reflected / inflated / random starts, models that
+cannot recover (shown, not hidden), and stiff problems (ν = 0.499, E = 1 GPa, h = 1e-4…1).
+
+A free-floating body has no static equilibrium to solve for (rigid motions make the
+stiffness singular); backward Euler with a large step (h = 1 s) adds M/h², which
+regularises it and lets the body relax to rest in a few steps.
+
+Every material compiles its own Newton loop, so corotated (and a finer-mesh random-start
+study) is marked slow; the default run keeps stable neo-Hookean (with and without its log
+term), fixed corotated, neo-Hookean and StVK.
+
+Outcomes from the non-symmetric or near-singular starts (random positions; stable
+neo-Hookean without its log term from reflect/inflate) depend chaotically on the Newton
+path — round-off changes elsewhere in the library flip them — so those tests assert the
+properties that hold on every path, and the docstrings say what happens today.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxelastic as je
+from jaxelastic import dynamics as D
+from jaxelastic import loads as L
+from jaxelastic import materials as M
+from jaxelastic.kinematics import deformation_gradients
+from jaxelastic.solvers.newton import NewtonSettings, Status
+
+MU, LAM = (float(v) for v in M.lame(1.0e4, 0.3))
+PARAMS = M.Lame(MU, LAM)
+RELAX = D.Integrator(h=1.0)
+# Forces here are ~μ·(½)² ≈ 1e3 N; the floor of their round-off is ~1e-11 N. Without an
+# atol the relative tolerance of a step that starts almost at rest (‖g₀‖ ~ 1e-8) would be
+# below that floor. max_steps: from a random start the first step can need ~200 Newton
+# iterations (slow progress along large rigid rotations, which only the weak M/h² term
+# resists when h = 1 s).
+SETTINGS = NewtonSettings(max_steps=400, atol=1e-8)
+N_STEPS = 30
+
+
+@pytest.fixture(scope="module")
+def cube():
+    return je.box(2, 2, 2)
+
+
+def _start(mesh, name, seed=42):
+    X = np.asarray(mesh.points)
+    c = X.mean(0)
+    if name == "crush":
+        return c + 0.01 * (X - c)
+    if name == "reflect":
+        return X * np.array([1.0, -1.0, 1.0])
+    if name == "inflate":
+        return c + 2.0 * (X - c)
+    if name == "random":
+        return np.random.default_rng(seed).uniform(0.0, 1.0, X.shape)
+    raise ValueError(name)
+
+
+def _relax(mesh, psi, name, n_steps=N_STEPS, seed=42):
+    pot = je.Potential(
+        mesh=mesh, params=PARAMS, mass=jnp.asarray(L.lumped_mass(mesh, 100.0)), psi=psi
+    )
+    st0 = D.init_state(jnp.asarray(_start(mesh, name, seed)))
+    final, stats = D.simulate(
+        pot,
+        st0,
+        L.no_dirichlet(mesh),
+        RELAX,
+        n_steps,
+        settings=SETTINGS,
+        progress=False,
+        throw=False,
+    )
+    return st0, final, stats
+
+
+def _strain_stats(x, mesh):
+    F = np.asarray(deformation_gradients(x, mesh))[:, 0]
+    J = np.linalg.det(F)
+    C = np.einsum("cki,ckj->cij", F, F)
+    return J, np.abs(C - np.eye(3)[None]).max()
+
+
+def _rigid_fit(x, X):
+    """Best rigid map x ≈ R X + t (Kabsch). Returns the sign of the best orthogonal map
+    (−1: the shape is a mirror image) and the worst misfit with a proper rotation R."""
+    xc, Xc = x - x.mean(0), X - X.mean(0)
+    U, _, Vt = np.linalg.svd(xc.T @ Xc)
+    sign = np.sign(np.linalg.det(U @ Vt))
+    R = U @ np.diag([1.0, 1.0, sign]) @ Vt
+    return sign, np.abs(xc - Xc @ R.T).max()
+
+
+def _assert_recovered(mesh, psi, name):
+    st0, final, stats = _relax(mesh, psi, name)
+    statuses = {s["status"] for s in stats}
+    assert statuses == {"SUCCESS"} and len(stats) == N_STEPS, stats[-1]
+    e0 = float(je.energy(psi, st0.x, mesh, PARAMS))
+    e = float(je.energy(psi, final.x, mesh, PARAMS))
+    assert e0 > 100.0
+    assert abs(e) < 1e-10 * e0, (e, e0)
+    J, dC = _strain_stats(final.x, mesh)
+    assert np.abs(J - 1).max() < 1e-3 and dC < 1e-3, (J.min(), J.max(), dC)
+    # a *proper* rigid motion of the rest shape (not a reflection of it)
+    sign, misfit = _rigid_fit(np.asarray(final.x), np.asarray(mesh.points))
+    assert sign > 0 and misfit < 1e-3, (sign, misfit)
+
+
+# --------------------------------------------------------------------------------------
+# Invertible models recover to a rigid motion of the rest shape
+# --------------------------------------------------------------------------------------
+
+SYMMETRIC = ["crush", "reflect", "inflate"]
+
+
+@pytest.mark.parametrize("start", SYMMETRIC)
+@pytest.mark.parametrize("model", ["stable_neo_hookean_log", "fixed_corotated"])
+def test_invertible_models_recover(cube, model, start):
+    _assert_recovered(cube, M.BUILTIN[model], start)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("start", SYMMETRIC)
+def test_corotated_recovers(cube, start):
+    _assert_recovered(cube, M.corotated, start)
+
+
+def _forces_at_rest(mesh, psi, x):
+    f = np.asarray(je.forces(psi, x, mesh, PARAMS))
+    return np.abs(f).max()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("model", ["stable_neo_hookean_log", "fixed_corotated"])
+def test_invertible_models_untangle_random_start(cube, model, seed):
+    """Random positions (about a third of the tets inverted): every step succeeds and the
+    body comes to rest with *no inverted element*. Whether it reaches the rest shape or a
+    tangled local minimum of this coarse mesh (all J > 0, corners folded onto each other,
+    E ≈ 0.1·E₀) depends chaotically on the path; see the slow test on a finer mesh."""
+    psi = M.BUILTIN[model]
+    x0 = jnp.asarray(_start(cube, "random", seed))
+    J0, _ = _strain_stats(x0, cube)
+    assert (J0 < 0).sum() > 5
+    st0, final, stats = _relax(cube, psi, "random", seed=seed)
+    assert [s["status"] for s in stats] == ["SUCCESS"] * N_STEPS
+    assert np.isfinite(np.asarray(final.x)).all()
+    J, _ = _strain_stats(final.x, cube)
+    assert J.min() > 0.1
+    e0 = float(je.energy(psi, st0.x, cube, PARAMS))
+    e = float(je.energy(psi, final.x, cube, PARAMS))
+    assert e < 0.25 * e0
+    # at rest in an equilibrium (forces ~ 1e3 N scale before)
+    assert _forces_at_rest(cube, psi, final.x) < 1e-4
+    assert float(D.kinetic_energy(jnp.asarray(L.lumped_mass(cube, 100.0)), final.v)) < 1e-4
+
+
+@pytest.mark.slow
+def test_random_starts_mostly_recover_on_finer_mesh():
+    """On box(3, 3, 3) most random draws return to the rest shape (5 of 6 when written)."""
+    mesh = je.box(3, 3, 3)
+    recovered = 0
+    for seed in range(6):
+        st0, final, stats = _relax(mesh, M.stable_neo_hookean_log, "random", seed=seed)
+        assert all(s["status"] == "SUCCESS" for s in stats)
+        J, dC = _strain_stats(final.x, mesh)
+        assert J.min() > 0.1
+        recovered += bool(np.abs(J - 1).max() < 1e-3 and dC < 1e-3)
+    assert recovered >= 4
+
+
+def test_stable_neo_hookean_without_log_term_collapses_from_crush(cube):
+    """Known trap (DESIGN §4): without the log term, F = 0 is a stable equilibrium in 3D
+    (the Hessian there is μ·I), and a crushed start falls into it."""
+    _, final, stats = _relax(cube, M.stable_neo_hookean, "crush")
+    assert {s["status"] for s in stats} == {"SUCCESS"}
+    assert _collapsed(cube, final.x)
+
+
+def _collapsed(mesh, x):
+    J, _ = _strain_stats(x, mesh)
+    F = np.asarray(deformation_gradients(x, mesh))[:, 0]
+    if not (np.abs(J).max() < 1e-6 and np.abs(F).max() < 1e-3):
+        return False
+    # ψ(0) = λ′α²/2 − μ²/(2λ′) − 3μ/2 = λ/2 per unit volume (unit cube)
+    e = float(je.energy(M.stable_neo_hookean, x, mesh, PARAMS))
+    np.testing.assert_allclose(e, LAM / 2, rtol=1e-6)
+    return True
+
+
+@pytest.mark.parametrize("start", ["reflect", "inflate"])
+def test_stable_neo_hookean_without_log_term_recovers_or_collapses(cube, start):
+    """From reflected or inflated starts the outcome depends on the path (with Newton
+    started from the inertial predictor at h = 1 s, inflate collapses and reflect
+    recovers; started from x_n it was the other way round): only the two stable states
+    are possible, the rest shape or total collapse."""
+    _, final, stats = _relax(cube, M.stable_neo_hookean, start)
+    assert {s["status"] for s in stats} == {"SUCCESS"}
+    J, dC = _strain_stats(final.x, cube)
+    recovered = np.abs(J - 1).max() < 1e-3 and dC < 1e-3
+    assert recovered or _collapsed(cube, final.x)
+
+
+# --------------------------------------------------------------------------------------
+# Models that cannot recover: neo-Hookean reports, StVK stays reflected
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("start", ["reflect", "random"])
+def test_neo_hookean_inverted_start_reports_inverted(cube, start):
+    st0, final, stats = _relax(cube, M.neo_hookean, start)
+    assert len(stats) == 1 and stats[0]["status"] == "INVERTED"
+    assert stats[0]["newton_steps"] == 0
+    # the state is not advanced, and nothing turned into NaN
+    np.testing.assert_array_equal(np.asarray(final.x), np.asarray(st0.x))
+    assert np.isfinite(np.asarray(final.x)).all() and int(final.n) == 0
+
+
+def test_neo_hookean_crushed_is_not_inverted_and_recovers(cube):
+    """×0.01 keeps J = 1e-6 > 0: neo-Hookean's energy is huge but finite, and the barrier
+    line search brings it back without ever inverting."""
+    J, _ = _strain_stats(jnp.asarray(_start(cube, "crush")), cube)
+    np.testing.assert_allclose(J, 1e-6, rtol=1e-9)
+    _assert_recovered(cube, M.neo_hookean, "crush")
+
+
+def test_stvk_reflection_has_zero_energy_and_stays(cube):
+    st0, final, stats = _relax(cube, M.stvk, "reflect", n_steps=5)
+    assert float(je.energy(M.stvk, st0.x, cube, PARAMS)) == pytest.approx(0.0, abs=1e-20)
+    assert [s["status"] for s in stats] == ["SUCCESS"] * 5
+    assert all(s["newton_steps"] == 0 for s in stats)  # already "at rest"
+    J, dC = _strain_stats(final.x, cube)
+    np.testing.assert_allclose(J, -1.0, atol=1e-12)  # still inside out
+    assert dC < 1e-12
+
+
+# --------------------------------------------------------------------------------------
+# Stiff problems: nearly incompressible, very stiff, tiny and huge time steps
+# --------------------------------------------------------------------------------------
+
+E_STIFF, NU_STIFF, RHO = 1.0e9, 0.499, 1000.0
+G = np.array([0.0, 0.0, -9.81])
+
+
+@pytest.fixture(scope="module")
+def beam():
+    mesh = je.box(3, 2, 2, size=(3.0, 1.0, 1.0))
+    mu, lam = (float(v) for v in M.lame(E_STIFF, NU_STIFF))
+    p = M.Lame(mu, lam)
+    pot = je.Potential(
+        mesh=mesh, params=p, f_ext=jnp.asarray(L.gravity_load(mesh, RHO, G)), psi=M.neo_hookean
+    )
+    clamp = L.fix(mesh, L.nodes_on_plane(mesh, 0, 0.0))
+    return mesh, p, pot, clamp
+
+
+def test_stiff_nearly_incompressible_static(beam):
+    mesh, p, pot, clamp = beam
+    res = je.solve(pot, clamp)
+    uz = np.asarray(res.x - mesh.points)[:, 2]
+    tip = L.nodes_on_plane(mesh, 0, 3.0)
+    # Euler–Bernoulli: δ = q L⁴/(8EI), q = ρ g A; P1 tets lock (ν → ½, 2 elements
+    # through the depth), so only bounds: downwards, below the beam-theory value
+    delta = RHO * 9.81 * 1.0 * 3.0**4 / (8 * E_STIFF * (1.0 / 12))
+    assert 0.02 * delta < -uz[tip].mean() < 1.2 * delta
+    R = np.asarray(L.reaction_force(M.neo_hookean, res.x, mesh, p, clamp, f_ext=pot.f_ext))
+    total = np.asarray(pot.f_ext).sum(0)
+    np.testing.assert_allclose(R, -total, rtol=0, atol=1e-6 * np.abs(total).max())
+    J = np.linalg.det(np.asarray(deformation_gradients(res.x, mesh))[:, 0])
+    assert np.abs(J - 1).max() < 1e-5  # nearly incompressible
+
+
+@functools.partial(jax.jit, static_argnames=("settings",))
+def _step_h(base, state, bc, h, settings):
+    return D.step(base, state, bc, D.Integrator(h), settings)
+
+
+@pytest.mark.parametrize("h", [1e-4, 1.0])
+def test_stiff_dynamics_tiny_and_huge_steps(beam, h):
+    mesh, p, pot, clamp = beam
+    base = pot.replace(mass=jnp.asarray(L.lumped_mass(mesh, RHO)))
+    st = D.init_state(mesh.points)
+    for _ in range(3):
+        st, res = _step_h(base, st, clamp, jnp.asarray(h), NewtonSettings())
+        assert int(res.status) == Status.SUCCESS, Status(int(res.status)).name
+    uz = np.asarray(st.x - mesh.points)[:, 2]
+    tip = L.nodes_on_plane(mesh, 0, 3.0)
+    t = 3 * h
+    if h < 1e-3:
+        # 0.3 ms: the clamp is ~3 wave lengths c·h away, the tip is still in free fall
+        # (backward Euler's discrete free fall: ½ g t (t + h))
+        np.testing.assert_allclose(uz[tip], -0.5 * 9.81 * t * (t + h), rtol=1e-2)
+    else:
+        # h ≫ the beam's period: each step is essentially the static solution
+        static = je.solve(pot, clamp)
+        uz_s = np.asarray(static.x - mesh.points)[:, 2]
+        np.testing.assert_allclose(uz[tip], uz_s[tip], rtol=1e-3)
