@@ -136,8 +136,8 @@ def step(
         integ: :class:`Integrator`; settings: Newton settings.
         linear: optional :class:`~jaxelastic.solvers.host.HostLinearSolver` (static).
 
-    Newton starts from the inertial predictor x̃ (one Newton iteration fewer on smooth
-    motion), or from x_n when x̃ has non-finite energy (e.g. it would invert an element).
+    Newton starts from the inertial predictor x̃ or from x_n, whichever has the lower
+    incremental potential (x̃ saves an iteration on smooth motion; x_n is safer at large h).
 
     Returns:
         ``(new_state, newton_result)``; on failure the state is not advanced (the status
@@ -147,7 +147,12 @@ def step(
         raise ValueError("dynamics needs lumped masses: Potential(mass=lumped_mass(...))")
     bdf2_now = state.n > 0
     pot = _step_potential(base, state, integ, bdf2_now)
-    x_start = jnp.where(jnp.isfinite(potential_value(pot, pot.x_tilde)), pot.x_tilde, state.x)
+    # start from whichever of x̃ and x_n has the lower Π (x̃ saves a Newton iteration on
+    # smooth motion; at large h it can overshoot or invert, where x_n is better)
+    e_tilde = potential_value(pot, pot.x_tilde)
+    e_n = potential_value(pot, state.x)
+    use_tilde = jnp.isfinite(e_tilde) & ~(e_tilde > e_n)
+    x_start = jnp.where(use_tilde, pot.x_tilde, state.x)
     res = newton(pot, x_start, bc, settings, linear)
     x_new = res.x
     h = integ.h

@@ -48,7 +48,9 @@ force = [0, 0, -1.0]          # [N] on each node, or total_force = [..] shared e
 [gravity]
 g = [0, 0, -9.81]             # [m/s^2]
 
-[solver]                      # any field of jaxelastic.NewtonSettings
+[solver]                      # any field of jaxelastic.NewtonSettings, plus:
+linear = "auto"               # "auto" (sparse Cholesky <= 10k dofs, else AMG-CG), "direct",
+                              # "amg", or "cg" (matrix-free PCG inside jit)
 rtol = 1e-8
 
 [integrator]

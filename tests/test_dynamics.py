@@ -3,8 +3,9 @@ Dirichlet data, rollout vs simulate, Rayleigh damping.
 
 Compilation budget: :class:`~jaxelastic.dynamics.Integrator` is a *static* argument of
 ``simulate``/``rollout`` (every distinct h compiles a new step), so the h-sweeps call
-:func:`jaxelastic.dynamics.step` through a local jit that traces h. All potentials carry an
-``f_ext`` array (zeros when unloaded) so that they share one pytree structure.
+:func:`jaxelastic.dynamics.step` through a local jit that traces h (that path uses
+matrix-free CG; ``simulate`` uses its default sparse direct solver). All potentials carry
+an ``f_ext`` array (zeros when unloaded) so that they share one pytree structure.
 """
 
 import functools
@@ -18,7 +19,7 @@ import jaxelastic as je
 from jaxelastic import dynamics as D
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic.solvers.newton import NewtonSettings, Status
+from jaxelastic.solvers.newton import NewtonSettings, Status, make_linear
 
 MU, LAM = (float(v) for v in M.lame(1.0e4, 0.3))
 PARAMS = M.Lame(MU, LAM)
@@ -241,8 +242,11 @@ def test_rollout_under_jit_matches_simulate(mesh, base):
         progress=False,
         callback=lambda s, r: xs.append(np.asarray(s.x)),
     )
-    roll = jax.jit(D.rollout, static_argnames=("bc_fn", "integ", "n_steps", "settings"))
-    final, (pos, status, steps, lin) = roll(base, st0, bc, BE, 12, SETTINGS)
+    # the same linear solver as simulate's default (sparse Cholesky through a callback)
+    linear = make_linear(mesh, bc(0.0), "auto")
+    assert linear is not None
+    roll = jax.jit(D.rollout, static_argnames=("bc_fn", "integ", "n_steps", "settings", "linear"))
+    final, (pos, status, steps, lin) = roll(base, st0, bc, BE, 12, SETTINGS, linear)
     assert (np.asarray(status) == Status.SUCCESS).all()
     assert (np.asarray(steps) >= 1).all()
     np.testing.assert_allclose(np.asarray(pos), np.stack(xs), rtol=0, atol=1e-12)

@@ -1,9 +1,11 @@
 """Newton solver: patch tests, closed-form nonlinear solutions, convergence rate, statuses.
 
-Every distinct (ψ, settings, mesh shape, potential structure) compiles the Newton loop, so
-the tests share a few meshes (``rectangle(4, 4)``, ``box(3, 2, 2)``), one material
-parameter set (Python floats: weak-typed, so changing values never recompiles) and the
-default :class:`NewtonSettings` wherever possible.
+Every distinct (ψ, settings, mesh shape, potential structure, linear solver) compiles the
+Newton loop — and ``solve``'s default ``linear="auto"`` solver is keyed on the Dirichlet
+mask too — so the tests share a few meshes (``rectangle(4, 4)``, ``box(3, 2, 2)``), a few
+boundary-condition sets, one material parameter set (Python floats: weak-typed, so new
+values never recompile) and two settings objects. Tests about the matrix-free path pass
+``linear="cg"`` (or call :func:`newton` under jit, which uses CG).
 """
 
 import jax
@@ -11,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.optimize import brentq
+from scipy.spatial.transform import Rotation
 
 import jaxelastic as je
 from jaxelastic import loads as L
@@ -107,15 +110,12 @@ def _affine(dim):
         c = np.array([0.3, -0.2])
     else:
         U = np.array([[1.2, 0.1, -0.05], [0.1, 0.9, 0.08], [-0.05, 0.08, 1.1]])
-        w = np.array([0.3, -0.2, 0.5])
-        K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-        R = np.linalg.matrix_power(np.eye(3) + K / 64 + (K @ K) / (2 * 64**2), 64)
-        R = np.linalg.qr(R)[0] * np.sign(np.diag(np.linalg.qr(R)[1]))
+        R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
         c = np.array([0.3, -0.2, 0.1])
     return R @ U, c
 
 
-def _patch_problem(mesh, name):
+def _patch_problem(mesh):
     F0, c = _affine(mesh.dim)
     X = np.asarray(mesh.points)
     x_aff = X @ F0.T + c
@@ -131,7 +131,7 @@ def test_affine_map_is_equilibrium(rect, blk, dim, name):
     """Cheap half of the nonlinear patch test (no Newton compile): at x = F0·X + c the
     interior nodal forces vanish for every material."""
     mesh = _mesh(rect, blk, dim)
-    x_aff, interior, _ = _patch_problem(mesh, name)
+    x_aff, interior, _ = _patch_problem(mesh)
     f = np.asarray(je.forces(M.BUILTIN[name], jnp.asarray(x_aff), mesh, PARAMS))
     scale = np.abs(
         np.asarray(je.element_forces(M.BUILTIN[name], jnp.asarray(x_aff), mesh, PARAMS))
@@ -141,7 +141,7 @@ def test_affine_map_is_equilibrium(rect, blk, dim, name):
 
 
 def _check_patch_solve(mesh, name):
-    x_aff, interior, bc = _patch_problem(mesh, name)
+    x_aff, interior, bc = _patch_problem(mesh)
     # start from the rest shape with the interior perturbed (the boundary is moved by
     # Newton's Dirichlet step): the solver must find the affine interior
     rng = np.random.default_rng(0)
@@ -207,10 +207,13 @@ def test_uniaxial_neo_hookean_closed_form(rect, blk, dim):
 # --------------------------------------------------------------------------------------
 
 
-def test_quadratic_convergence(blk):
-    bc, _ = _uniaxial_bc(blk, 1.4)
+@pytest.mark.parametrize("linear", ["auto", "cg"])
+def test_quadratic_convergence(blk, linear):
+    """Sparse direct solves (the default) and inexact CG with the forcing term ~‖g‖ both
+    keep Newton quadratic: r_{k+1}/r_k² stays bounded."""
+    bc, _ = _uniaxial_bc(blk, 2.2)
     pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
-    res = solve(pot, bc, settings=TIGHT)
+    res = solve(pot, bc, settings=TIGHT, linear=linear)
     r = np.asarray(res.residual_history)[: int(res.steps) + 1]
     r = r / r.max()
     assert res.steps <= 8
@@ -218,19 +221,31 @@ def test_quadratic_convergence(blk):
     pairs = [(r[k], r[k + 1]) for k in range(len(r) - 1) if 0 < r[k] < 0.1 and r[k + 1] > 1e-11]
     assert len(pairs) >= 2, r
     ratios = [rk1 / rk**2 for rk, rk1 in pairs]
-    # linear convergence with rate 0.1 would give r_{k+1}/r_k² = 0.1/r_k > 100 here
+    # linear convergence with rate 0.1 would give r_{k+1}/r_k² = 0.1/r_k > 1000 here
     assert max(ratios) < 10.0, (r, ratios)
 
 
 @pytest.mark.parametrize("pc", ["none", "jacobi", "block_jacobi"])
-def test_preconditioners_agree(blk, pc):
+def test_cg_preconditioners_agree(blk, pc):
+    """Matrix-free CG with each preconditioner finds the sparse-direct solution."""
     bc, _ = _uniaxial_bc(blk, 1.4)
     pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
-    settings = TIGHT if pc == "none" else NewtonSettings(preconditioner=pc)
-    ref = solve(pot, bc, settings=TIGHT)
-    res = solve(pot, bc, settings=settings)
-    assert res.ok
-    np.testing.assert_allclose(np.asarray(res.x), np.asarray(ref.x), rtol=0, atol=1e-9)
+    settings = TIGHT if pc == "none" else NewtonSettings(rtol=1e-12, preconditioner=pc)
+    ref = solve(pot, bc, settings=TIGHT)  # linear="auto": sparse Cholesky at this size
+    res = solve(pot, bc, settings=settings, linear="cg")
+    assert res.ok and int(res.linear_iterations) > int(res.steps)  # CG really ran
+    np.testing.assert_allclose(np.asarray(res.x), np.asarray(ref.x), rtol=0, atol=1e-11)
+
+
+def test_hvp_matches_element_hessians(blk):
+    """The matrix-free forward-over-reverse HVP and assembled element Hessians give the
+    same Newton iterates (CG, no preconditioner, so nothing else differs)."""
+    bc, _ = _uniaxial_bc(blk, 1.4)
+    pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
+    ref = solve(pot, bc, settings=TIGHT, linear="cg")  # element Hessians
+    res = solve(pot, bc, settings=TIGHT._replace(hessian="hvp"), linear="cg")
+    assert int(res.steps) == int(ref.steps)
+    np.testing.assert_allclose(np.asarray(res.x), np.asarray(ref.x), rtol=0, atol=1e-11)
 
 
 def test_projected_hessian_converges(blk):

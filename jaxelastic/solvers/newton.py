@@ -15,7 +15,8 @@ Each iteration:
    solution, decrease of the residual near it, where Π's round-off (~1e-16·Σ_c|x_cᵀK_c x_c|,
    far above 1e-16·|Π| near rest because ψ cancels large terms) exceeds
    the predicted decrease; steps that move Dirichlet dofs only need a finite Π.
-4. Convergence: ``‖g_free‖ ≤ max(atol, rtol·‖g‖_ref)`` with all Dirichlet dofs in place,
+4. Convergence: ``‖g_free‖ ≤ max(atol, rtol·‖g‖_ref)`` with all Dirichlet dofs in place
+   (or a full step below ``xtol`` times the body's size, at the residual's round-off),
    where ``‖g‖_ref`` is the largest free residual seen, ‖f_ext‖, or the largest
    right-hand side ``‖g_f + K_fD Δ_D‖`` (the force induced by a Dirichlet motion).
 
@@ -113,6 +114,10 @@ class NewtonSettings(NamedTuple):
         require_positive_J: also reject trial steps where any element has J ≤ 0 (for user
             materials that return finite garbage there); the built-in neo-Hookean returns
             +inf, which the line search rejects anyway.
+        xtol: also converged when a full Newton step moves no node by more than
+            ``xtol × (rest bounding-box diagonal)`` with the Dirichlet dofs in place: the
+            residual can stagnate at its round-off floor (e.g. ~eps·m/h²·|x| in dynamics)
+            below ``rtol·‖g‖_ref`` for a body already at rest.
     """
 
     max_steps: int = 50
@@ -124,6 +129,7 @@ class NewtonSettings(NamedTuple):
     ls_max: int = 40
     armijo: float = 1e-4
     require_positive_J: bool = False
+    xtol: float = 1e-12
 
 
 class NewtonResult(NamedTuple):
@@ -225,6 +231,8 @@ def newton(
         return xKx
 
     ref0 = _norm(pot.f_ext * fm) if pot.f_ext is not None else jnp.zeros((), dtype)
+    X = pot.mesh.points
+    length = jnp.sqrt(jnp.sum((jnp.max(X, axis=0) - jnp.min(X, axis=0)) ** 2))
 
     def status_of(rn, dn, ref, k):
         tol = jnp.maximum(s.atol, s.rtol * ref)
@@ -328,14 +336,17 @@ def newton(
             ls_cond, ls_body, (one, *trial(one), jnp.asarray(0, jnp.int32))
         )
         neg = res.status == CG_NEGATIVE_CURVATURE
-        return xt, et, gt, acc, alpha, cuts, res.iterations, neg, bn
+        step_inf = jnp.max(jnp.abs(step))
+        return xt, et, gt, acc, alpha, cuts, res.iterations, neg, bn, step_inf
 
     def cond(c):
         return c["status"] == _RUNNING
 
     def body(c):
         x, g, k = c["x"], c["g"], c["k"]
-        xt, et, gt, acc, alpha, cuts, lin, neg, bn = newton_step(x, g, c["energy"], c["ref"])
+        xt, et, gt, acc, alpha, cuts, lin, neg, bn, step_inf = newton_step(
+            x, g, c["energy"], c["ref"]
+        )
         x_new = jnp.where(acc, xt, x)
         e_new = jnp.where(acc, et, c["energy"])
         g_new = jnp.where(acc, gt, g)
@@ -345,6 +356,8 @@ def newton(
         # purely displacement-driven solve (whose free residual is 0 at the rest shape)
         ref = jnp.maximum(jnp.maximum(c["ref"], rn), bn)
         st = status_of(rn, dn, ref, k + 1)
+        tiny_step = acc & (alpha == 1.0) & (dn == 0) & (step_inf <= s.xtol * length)
+        st = jnp.where((st == _RUNNING) & tiny_step & jnp.isfinite(rn), Status.SUCCESS, st)
         st = jnp.where(acc, st, Status.LINE_SEARCH_FAILED)
         return dict(
             x=x_new,
