@@ -43,6 +43,7 @@ from .mesh import cook_membrane as cook_membrane
 from .mesh import from_arrays as from_arrays
 from .mesh import rectangle as rectangle
 from .potential import Potential as Potential
+from .solvers.continuation import solve_incremental as solve_incremental
 from .solvers.newton import NewtonResult as NewtonResult
 from .solvers.newton import NewtonSettings as NewtonSettings
 from .solvers.newton import SolveError as SolveError

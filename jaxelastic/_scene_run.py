@@ -46,6 +46,7 @@ from .scenes import (
     _n_positional,
     load_scene,
 )
+from .solvers.continuation import solve_incremental
 from .solvers.newton import (
     NewtonResult,
     NewtonSettings,
@@ -474,7 +475,8 @@ def _solve_stats(res: NewtonResult, wall: float) -> dict:
 
 
 def _static_solve(built: Built, progress: bool, *, bc=None, what="static solve"):
-    """Newton with ``load_steps`` increments; returns ``(x, per-step stats, result)``.
+    """Newton with ``load_steps`` increments and automatic cut-back on failure; returns
+    ``(x, per-trial stats, last result)``.
 
     ``bc``: fixed Dirichlet data (the dynamic comparison); default ``built.bc_fn(s)`` at
     each load factor ``s``.
@@ -482,26 +484,30 @@ def _static_solve(built: Built, progress: bool, *, bc=None, what="static solve")
     scene, pot = built.scene, built.potential
     static_pot = pot.replace(mass=None)
     n = scene["integrator"].get("load_steps", 1) if scene.static else 1
-    x = built.x0
+    bc_fn = built.bc_fn if bc is None else (lambda s: bc)
+    inc = solve_incremental(
+        static_pot,
+        bc_fn,
+        built.x0,
+        steps=n,
+        settings=built.settings,
+        linear=built.linear,
+        throw=False,
+    )
     stats = []
-    res = None
-    from tqdm.auto import tqdm
-
-    for k in tqdm(range(1, n + 1), desc="load steps", disable=not progress or n == 1, leave=False):
-        s = k / n
-        p = static_pot if pot.f_ext is None or n == 1 else static_pot.replace(f_ext=s * pot.f_ext)
-        bc_k = built.bc_fn(s) if bc is None else bc
-        t0 = time.perf_counter()
-        res = jax.block_until_ready(
-            _newton_jit(p, x, bc_k, settings=built.settings, linear=built.linear)
+    for h in inc.history:
+        st = {k: h[k] for k in ("status", "newton_steps", "linear_iterations", "residual")}
+        st.update(
+            line_search_cutbacks=0,
+            negative_curvature=0,
+            wall_time=h["wall_time"],
+            load_factor=h["s"],
+            accepted=h["accepted"],
         )
-        st = _solve_stats(res, time.perf_counter() - t0)
-        st["load_factor"] = s
         stats.append(st)
-        if int(res.status) != Status.SUCCESS:
-            raise SolveError(res, what=f"{what} (load step {k}/{n})" if n > 1 else what)
-        x = res.x
-    return x, stats, res
+    if not inc.ok:
+        raise SolveError(inc.last, what=f"{what} (stalled at load factor {inc.load_factor:.4g})")
+    return inc.x, stats, inc.last
 
 
 def _probe_report(built: Built, x) -> list:

@@ -591,7 +591,7 @@ def _check_solver(v: _V, x):
     from .solvers.newton import NewtonSettings
 
     key = "[solver]"
-    fields = ("linear",) + NewtonSettings._fields
+    fields = NewtonSettings._fields + ("linear",)
     t = v.table(key, x, fields)
     defaults = dict(NewtonSettings._field_defaults, linear="auto")
     out = {}
