@@ -7,20 +7,13 @@ import sys
 import types
 
 import pytest
+from _common import TINY_SCENE
 
 from jaxelastic import cli
 from jaxelastic.scenes import apply_overrides
 
 # the same tiny static scene as in test_scenes.py (same shapes and settings: no recompile)
-TINY = {
-    "name": "tiny",
-    "mesh": {"generator": "rectangle", "n": [4, 2], "size": [2.0, 1.0]},
-    "material": {"model": "neo_hookean", "E": 1000.0, "nu": 0.3},
-    "dirichlet": [{"nodes": {"plane": {"axis": "x", "value": 0.0}}}],
-    "traction": [{"facets": {"plane": {"axis": "x", "value": 2.0}}, "total_force": [0.0, -10.0]}],
-    "integrator": {"type": "static"},
-    "output": {"probes": [[2.0, 0.5]]},
-}
+TINY = TINY_SCENE
 
 
 def _scene_file(tmp_path, data=TINY, name="tiny.toml"):

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _common import IDS, MODEL_DIMS
 
 import jaxelastic as je
 from jaxelastic import materials as M
@@ -23,13 +24,6 @@ PARAMS = M.Lame(jnp.asarray(MU), jnp.asarray(LAM))
 RECT = je.rectangle(3, 3)
 BOX = je.box(2, 2, 2)
 MESHES = {2: RECT, 3: BOX}
-MODEL_DIMS = [
-    (name, d)
-    for name in M.BUILTIN
-    for d in (2, 3)
-    if not (name == "stable_neo_hookean_log" and d == 2)
-]
-IDS = [f"{n}-{d}D" for n, d in MODEL_DIMS]
 
 
 def deformed(mesh, seed=0, amp=0.1):

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _common import IDS, MODEL_DIMS
 from scipy.optimize import brentq
 
 from jaxelastic import materials as M
@@ -18,13 +19,7 @@ PARAMS = M.Lame(jnp.asarray(MU), jnp.asarray(LAM))
 # nearly incompressible (ν ≈ 0.49): λ/μ ≈ 49
 PARAMS_STIFF = M.Lame(jnp.asarray(MU), jnp.asarray(49.0 * MU))
 
-MODEL_DIMS = [
-    (name, d)
-    for name in M.BUILTIN
-    for d in (2, 3)
-    if not (name == "stable_neo_hookean_log" and d == 2)
-]
-IDS = [f"{n}-{d}D" for n, d in MODEL_DIMS]
+
 INVARIANT = [(n, d) for n, d in MODEL_DIMS if n != "linear"]
 INVERTIBLE = [
     "stable_neo_hookean",

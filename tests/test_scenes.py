@@ -9,22 +9,14 @@ import xml.etree.ElementTree as ET
 import meshio
 import numpy as np
 import pytest
+from _common import TINY_SCENE
 
 import jaxelastic as je
 from jaxelastic import scenes
 from jaxelastic.scenes import SceneError, apply_overrides, build, load_scene, run_scene
 from jaxelastic.solvers.newton import SolveError
 
-# a tiny 2D static scene (reused by several tests, so its solver compiles once)
-TINY = {
-    "name": "tiny",
-    "mesh": {"generator": "rectangle", "n": [4, 2], "size": [2.0, 1.0]},
-    "material": {"model": "neo_hookean", "E": 1000.0, "nu": 0.3},
-    "dirichlet": [{"nodes": {"plane": {"axis": "x", "value": 0.0}}}],
-    "traction": [{"facets": {"plane": {"axis": "x", "value": 2.0}}, "total_force": [0.0, -10.0]}],
-    "integrator": {"type": "static"},
-    "output": {"probes": [[2.0, 0.5]]},
-}
+TINY = TINY_SCENE
 
 
 def _bad(overrides, base=TINY):
