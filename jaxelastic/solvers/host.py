@@ -82,6 +82,9 @@ class HostLinearSolver:
         """
         self.calls += 1
         Ke = np.array(Ke, dtype=np.float64)
+        # autodiff Hessians are symmetric only to round-off (~1e-13); Cholesky reads one
+        # triangle while the residual check uses the whole matrix, so symmetrise first
+        Ke = 0.5 * (Ke + np.swapaxes(Ke, 1, 2))
         b = np.array(rhs, dtype=np.float64, order="C").reshape(-1)  # writable, contiguous
         K = self._matrix(Ke, mass_diag)
         self.solver.update(K)
