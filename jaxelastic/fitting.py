@@ -43,7 +43,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import potential as pot_mod
-from .energy import assemble
 from .loads import Dirichlet
 from .materials import Lame, lame
 from .potential import Potential
@@ -104,16 +103,9 @@ def _hessian_operator(pot: Potential, x, Ke):
     """Exact Hessian matvec at x (element Hessians + lumped mass; HVP if stiffness damping)."""
     if pot.stiffness_damping is not None:
         return lambda v: pot_mod.hessian_vp(pot, x, v)
-    mesh = pot.mesh
-    md = pot_mod._mass_diag(pot)
 
     def H(v):
-        ve = v[mesh.cells].reshape(mesh.n_cells, -1)
-        out = jnp.einsum("cij,cj->ci", Ke, ve).reshape(mesh.cells.shape + (-1,))
-        Hv = assemble(mesh, out)
-        if md is not None:
-            Hv = Hv + md[:, None] * v
-        return Hv
+        return pot_mod.element_hessian_vp(pot, Ke, v)
 
     return H
 

@@ -22,7 +22,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from .energy import element_hessians, energy, forces, hvp
+from .energy import assemble, element_hessians, energy, forces, hvp
 from .mesh import Mesh
 
 __all__ = [
@@ -31,6 +31,7 @@ __all__ = [
     "gradient",
     "hessian_vp",
     "node_hessian_blocks",
+    "element_hessian_vp",
     "elastic_element_hessians",
 ]
 
@@ -136,6 +137,19 @@ def hessian_vp(pot: Potential, x: jax.Array, v: jax.Array) -> jax.Array:
         Hv = Hv + w[:, None] * v
     if pot.stiffness_damping is not None:
         Hv = Hv + pot.stiffness_damping * hvp(pot.psi, pot.x_prev, v, pot.mesh, pot.params)
+    return Hv
+
+
+def element_hessian_vp(pot: Potential, Ke: jax.Array, v: jax.Array) -> jax.Array:
+    """``(∂²Π/∂x²)·v`` from precomputed elastic element Hessians ``(n_cells, k·d, k·d)``
+    plus the lumped-mass diagonal (the stiffness-damping term is not included)."""
+    mesh = pot.mesh
+    ve = v[mesh.cells].reshape(mesh.n_cells, -1)
+    out = jnp.einsum("cij,cj->ci", Ke, ve).reshape(mesh.cells.shape + (-1,))
+    Hv = assemble(mesh, out)
+    md = _mass_diag(pot)
+    if md is not None:
+        Hv = Hv + md[:, None] * v
     return Hv
 
 

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from .. import potential as pot_mod
-from ..energy import assemble, hvp
+from ..energy import hvp
 from ..kinematics import deformation_gradients, det
 from ..loads import Dirichlet
 from ..potential import Potential
@@ -250,16 +250,9 @@ def newton(
         if need_Ke:
             Ke = pot_mod.elastic_element_hessians(pot, x, project=s.hessian == "projected")
         if s.hessian in ("projected", "element"):
-            mesh = pot.mesh
-            md = pot_mod._mass_diag(pot)
 
             def H(v):
-                ve = v[mesh.cells].reshape(mesh.n_cells, -1)
-                out = jnp.einsum("cij,cj->ci", Ke, ve).reshape(mesh.cells.shape + (-1,))
-                Hv = assemble(mesh, out)
-                if md is not None:
-                    Hv = Hv + md[:, None] * v
-                return Hv
+                return pot_mod.element_hessian_vp(pot, Ke, v)
         else:
 
             def H(v):
