@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .energy import first_piola
+from .energy import first_piola, forces
 from .kinematics import deformation_gradients
 from .mesh import Mesh, boundary_facets
 
@@ -230,8 +230,6 @@ def reaction_force(
     prescribed dof is ``∂Π/∂x`` there (elastic gradient minus external load). Summed over
     the set, it balances the applied loads: ``reaction + Σ f_ext = 0`` in statics.
     """
-    from .energy import forces
-
     r = -forces(psi, x, mesh, params)
     if f_ext is not None:
         r = r - f_ext
