@@ -11,6 +11,7 @@ The library never changes JAX's global configuration: enable float64 yourself wi
 from . import dynamics as dynamics
 from . import elements as elements
 from . import fitting as fitting
+from . import implicit as implicit
 from . import io as io
 from . import kinematics as kinematics
 from . import loads as loads
