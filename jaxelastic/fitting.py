@@ -1,9 +1,21 @@
-"""Material identification: fit (E, ν) to observed deformed shapes with optax.
+"""Material identification: fit E and ν (shared, per region or per cell) with optax.
 
-:func:`fit` identifies (E, ν) from observed deformed positions in one or several load
-cases with an optax optimiser (L-BFGS by default), under the constraint-enforcing
-reparametrisation ``E = E₀·exp(a)``, ``ν = −1 + 1.5·sigmoid(b)``. Gradients come from
-:mod:`jaxelastic.implicit` (one adjoint solve per load case, never the Newton iterations).
+A *case* is one experiment: a frozen pytree with a ``weight`` attribute and two methods,
+
+* ``initial_warm() -> W``: a pytree of arrays, the first Newton initial guess(es);
+* ``evaluate(params, warm, settings, adjoint) -> (loss, CaseAux)``: the unweighted scalar
+  misfit for material parameters ``params`` (a :class:`~jaxelastic.materials.Lame` with
+  scalar or ``(n_cells,)`` leaves), reverse-mode differentiable through
+  :mod:`jaxelastic.implicit`, and a :class:`~jaxelastic.parametrization.CaseAux` (new warm
+  start, ``ok``, Newton and linear iteration counts).
+
+:class:`LoadCase` is the static case (a potential, Dirichlet data, observed positions of
+all nodes or of marker nodes); dynamic trajectories plug in the same way. :func:`fit`
+minimises ``Σ_c w_c·loss_c + regulariser`` over the unconstrained variables of
+:mod:`jaxelastic.parametrization` with optax (L-BFGS by default, or Adam), warm-starting
+every forward solve from the previous iterate's solution; a failed solve raises
+:class:`GradientError`. :func:`loss_landscape` and :func:`loss_hessian` probe
+identifiability.
 """
 
 from __future__ import annotations
@@ -29,41 +41,61 @@ from .implicit import (
 )
 from .loads import Dirichlet
 from .materials import Lame, lame
+from .parametrization import (
+    CaseAux,
+    Material,
+    ParamMap,
+    add_noise,
+    from_unconstrained,
+    make_param_map,
+    observation_loss,
+    to_unconstrained,
+)
 from .potential import Potential
 from .solvers.newton import NewtonSettings, Status
 
 __all__ = [
-    # re-exported from jaxelastic.implicit for convenience
+    # re-exported from jaxelastic.implicit / parametrization for convenience
     "AdjointSettings",
     "GradientError",
     "equilibrium",
     "equilibrium_result",
     "value_and_grad",
-    # fitting
-    "LoadCase",
-    "FitResult",
-    "fit",
+    "CaseAux",
+    "Material",
+    "add_noise",
+    "observation_loss",
     "to_unconstrained",
     "from_unconstrained",
+    # fitting
+    "LoadCase",
+    "Objective",
+    "FitResult",
+    "fit",
+    "loss_landscape",
+    "loss_hessian",
+    "make_objective",
 ]
 
-
-# --------------------------------------------------------------------------------------
-# fitting (E, ν)
-# --------------------------------------------------------------------------------------
+FIT_SETTINGS = NewtonSettings(rtol=1e-11)
 
 
 @dataclasses.dataclass(frozen=True)
 class LoadCase:
-    """One experiment: a potential (its ``params`` are replaced by the fitted ones), the
-    Dirichlet data, and observed positions.
+    """One static experiment: a potential (its ``params`` are replaced by the fitted ones),
+    the Dirichlet data, and observed positions.
 
     Attributes:
         pot: potential (mesh, ``f_ext``, ψ); ``params`` is ignored.
         bc: Dirichlet data.
         observed: ``(n_obs, dim)`` observed deformed positions of ``nodes``.
-        nodes: ``(n_obs,)`` node indices (marker nodes), or None for all nodes.
+        nodes: ``(n_obs,)`` int marker-node indices, or None for all nodes.
         weight: weight of this case in the loss.
+        linear: None (matrix-free PCG inside jit) or a host solver from
+            :func:`~jaxelastic.solvers.newton.make_linear` (static; not a string).
+
+    The loss is :func:`~jaxelastic.parametrization.observation_loss` (relative squared
+    misfit; 1 at the rest shape).
     """
 
     pot: Potential
@@ -71,45 +103,194 @@ class LoadCase:
     observed: Any
     nodes: Any = None
     weight: float = 1.0
+    linear: Any = dataclasses.field(default=None, metadata=dict(static=True))
+
+    def __post_init__(self):
+        if isinstance(self.linear, str):
+            raise ValueError(
+                "LoadCase.linear must be None or a solver from make_linear(mesh, bc, name), "
+                f"not the string {self.linear!r}"
+            )
+
+    def initial_warm(self):
+        """Rest positions ``(n_nodes, dim)``."""
+        return self.pot.mesh.points
+
+    def evaluate(self, params, warm, settings: NewtonSettings, adjoint: AdjointSettings):
+        """(unweighted loss, :class:`CaseAux`) at material parameters ``params``."""
+        r = equilibrium_result(
+            self.pot.replace(params=params), self.bc, warm, settings, self.linear, adjoint
+        )
+        loss = observation_loss(r.x, self.observed, self.pot.mesh.points, self.nodes)
+        aux = CaseAux(r.x, r.status == Status.SUCCESS, r.steps, r.linear_iterations)
+        return loss, aux
 
 
 jax.tree_util.register_dataclass(
-    LoadCase, data_fields=["pot", "bc", "observed", "nodes", "weight"], meta_fields=[]
+    LoadCase,
+    data_fields=["pot", "bc", "observed", "nodes", "weight"],
+    meta_fields=["linear"],
 )
 
 
-def to_unconstrained(E, nu, E_ref):
-    """(E, ν) → (a, b) with ``E = E_ref·exp(a)``, ``ν = −1 + 1.5·sigmoid(b)``."""
-    s = (nu + 1.0) / 1.5
-    return jnp.stack([jnp.log(E / E_ref), jnp.log(s) - jnp.log1p(-s)])
+def _total(z, pm: ParamMap, cases, warms, settings, adjoint):
+    params = pm.lame(z)
+    loss = pm.penalty(z)
+    auxs = []
+    for c, w in zip(cases, warms, strict=True):
+        val, aux = c.evaluate(params, w, settings, adjoint)
+        loss = loss + c.weight * val
+        auxs.append(aux)
+    return loss, tuple(auxs)
 
 
-def from_unconstrained(z, E_ref):
-    """Inverse of :func:`to_unconstrained`: returns (E, ν), E > 0 and −1 < ν < 0.5."""
-    return E_ref * jnp.exp(z[0]), -1.0 + 1.5 * jax.nn.sigmoid(z[1])
+@functools.partial(jax.jit, static_argnums=(4, 5))
+def _value_and_grad(z, pm, cases, warms, settings, adjoint):
+    return jax.value_and_grad(_total, has_aux=True)(z, pm, cases, warms, settings, adjoint)
+
+
+@functools.partial(jax.jit, static_argnums=(3, 4))
+def _forward(params, cases, warms, settings, adjoint):
+    loss = 0.0
+    auxs = []
+    for c, w in zip(cases, warms, strict=True):
+        val, aux = c.evaluate(params, w, settings, adjoint)
+        loss = loss + c.weight * val
+        auxs.append(aux)
+    return loss, tuple(auxs)
+
+
+@functools.cache
+def _opt_step_fn(optimizer, settings, adjoint):
+    import optax
+
+    @jax.jit
+    def step(z, state, g, value, pm, cases, warms):
+        def value_fn(zz):  # for line searches: a failed solve counts as +inf
+            loss, auxs = _total(zz, pm, cases, warms, settings, adjoint)
+            ok = jnp.all(jnp.stack([a.ok for a in auxs]))
+            return jnp.where(ok, loss, jnp.inf)
+
+        updates, state = optimizer.update(g, state, z, value=value, grad=g, value_fn=value_fn)
+        return optax.apply_updates(z, updates), state
+
+    return step
+
+
+@functools.cache
+def _named_optimizer(name: str, learning_rate: float):
+    import optax
+
+    if name == "lbfgs":
+        return optax.lbfgs()
+    if name == "adam":
+        return optax.with_extra_args_support(optax.adam(learning_rate))
+    raise ValueError(f"optimizer must be 'lbfgs', 'adam' or an optax transformation, got {name!r}")
+
+
+class Objective(NamedTuple):
+    """The fitting objective in unconstrained variables (see :func:`make_objective`).
+
+    Attributes:
+        pm: the :class:`~jaxelastic.parametrization.ParamMap`.
+        cases: tuple of cases.
+        z0: initial unconstrained vector.
+        settings, adjoint: Newton and adjoint settings.
+    """
+
+    pm: ParamMap
+    cases: tuple
+    z0: jax.Array
+    settings: NewtonSettings
+    adjoint: AdjointSettings
+
+    def initial_warms(self) -> tuple:
+        return tuple(c.initial_warm() for c in self.cases)
+
+    def value_and_grad(self, z, warms=None):
+        """``((loss, auxs), grad)`` at z (jit-compiled once per case structure); raises
+        :class:`GradientError` if a forward solve failed or the gradient is not finite."""
+        warms = self.initial_warms() if warms is None else tuple(warms)
+        (loss, auxs), g = _value_and_grad(
+            jnp.asarray(z), self.pm, self.cases, warms, self.settings, self.adjoint
+        )
+        bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
+        if bad:
+            raise GradientError(f"forward solve failed in case(s) {bad}")
+        _check_finite_grads(g)
+        return (loss, auxs), g
+
+    def material(self, z) -> Material:
+        return self.pm.material(jnp.asarray(z))
+
+
+def _default_mesh(cases):
+    for attr in ("pot", "potential"):
+        p = getattr(cases[0], attr, None)
+        if p is not None:
+            return p.mesh
+    return getattr(cases[0], "mesh", None)
+
+
+def make_objective(
+    cases: Sequence,
+    init: Material,
+    *,
+    regions=None,
+    fields: Sequence[str] = ("E", "nu"),
+    plane: str = "strain",
+    regularization: float = 0.0,
+    reg_kind: str = "tikhonov",
+    mesh=None,
+    settings: NewtonSettings = FIT_SETTINGS,
+    adjoint: AdjointSettings = DEFAULT_ADJOINT,
+) -> Objective:
+    """The :func:`fit` objective ``Σ_c w_c·loss_c(z) + regulariser(z)`` as an
+    :class:`Objective` (arguments as in :func:`fit`)."""
+    cases = tuple(cases)
+    if not cases:
+        raise ValueError("fit needs at least one case")
+    if mesh is None:
+        mesh = _default_mesh(cases)
+    pm = make_param_map(
+        init,
+        mesh,
+        regions=regions,
+        fields=fields,
+        plane=plane,
+        regularization=regularization,
+        reg_kind=reg_kind,
+    )
+    return Objective(pm, cases, pm.initial_z(), settings, adjoint)
 
 
 class FitResult(NamedTuple):
     """Result of :func:`fit`.
 
     Attributes:
-        E, nu: fitted values.
+        material: fitted :class:`Material` (floats, or ``(n_regions,)`` arrays).
+        E, nu: the same values.
         loss: final loss.
-        converged: stopping criterion met (else ``max_iter`` reached).
-        iterations: optimiser iterations.
-        loss_history: ``(iterations + 1,)`` loss at each iterate.
-        param_history: ``(iterations + 1, 2)`` (E, ν) at each iterate.
-        grad_norm_history: gradient norm (w.r.t. the unconstrained variables).
-        newton_steps: ``(iterations + 1, n_cases)`` Newton iterations of each forward solve.
-        linear_iterations: ``(iterations + 1, n_cases)`` CG iterations of each forward solve.
-        solutions: final equilibrium positions per case.
-        wall_time: seconds.
+        converged: a stopping criterion met (else ``max_iter`` reached or stalled).
+        stop_reason: ``"gtol"``, ``"ftol"``, ``"xtol"``, ``"stalled"`` or ``"max_iter"``.
+        iterations: optimiser iterations k.
+        loss_history: ``(k + 1,)`` loss at each iterate.
+        param_history: ``(k + 1, 2)`` (E, ν) per iterate, or ``(k + 1, 2, n_regions)``.
+        grad_norm_history: ``(k + 1,)`` gradient norm w.r.t. the unconstrained variables.
+        newton_steps: ``(k + 1, n_cases)`` Newton iterations of each case's forward solve(s)
+            at each iterate (line-search trial solves are not counted).
+        linear_iterations: ``(k + 1, n_cases)`` linear-solver iterations, likewise.
+        solutions: final warm start (equilibrium positions) per case.
+        z: final unconstrained vector.
+        wall_time: seconds, including compilation.
     """
 
-    E: float
-    nu: float
+    material: Material
+    E: Any
+    nu: Any
     loss: float
     converged: bool
+    stop_reason: str
     iterations: int
     loss_history: np.ndarray
     param_history: np.ndarray
@@ -117,52 +298,56 @@ class FitResult(NamedTuple):
     newton_steps: np.ndarray
     linear_iterations: np.ndarray
     solutions: list
+    z: np.ndarray
     wall_time: float
 
 
-def _case_loss(case: LoadCase, x):
-    X = case.pot.mesh.points
-    if case.nodes is None:
-        xo, Xo = x, X
-    else:
-        xo, Xo = x[case.nodes], X[case.nodes]
-    obs = case.observed
-    scale = jnp.sum((obs - Xo) ** 2)  # observed displacement magnitude
-    return case.weight * jnp.sum((xo - obs) ** 2) / scale
-
-
 def fit(
-    cases: Sequence[LoadCase],
-    E0: float,
-    nu0: float,
+    cases: Sequence,
+    init: Material,
     *,
+    regions=None,
+    fields: Sequence[str] = ("E", "nu"),
     plane: str = "strain",
-    optimizer=None,
+    optimizer="lbfgs",
+    learning_rate: float = 0.05,
     max_iter: int = 100,
     gtol: float = 1e-10,
     ftol: float = 1e-24,
-    settings: NewtonSettings = NewtonSettings(rtol=1e-11),
+    xtol: float = 1e-12,
+    regularization: float = 0.0,
+    reg_kind: str = "tikhonov",
+    mesh=None,
+    settings: NewtonSettings = FIT_SETTINGS,
     adjoint: AdjointSettings = DEFAULT_ADJOINT,
     progress: bool = False,
 ) -> FitResult:
-    """Fit Young's modulus and Poisson's ratio to observed positions.
+    """Fit Young's modulus and Poisson's ratio to observations in one or several cases.
 
-    The loss is ``Σ_cases w·‖x*(E, ν)[nodes] − observed‖² / ‖observed − X[nodes]‖²``
-    (each case normalised by its observed displacement). Parameters are optimised in
-    unconstrained variables (:func:`to_unconstrained`, with ``E_ref = E0``). Each forward
-    solve is warm-started from the previous iterate's solution of the same case.
+    Minimises ``Σ_c w_c·loss_c + regulariser`` over the unconstrained variables
+    ``a = ln(E/E_init)``, ``b = logit((ν+1)/1.5)`` (so E > 0 and −1 < ν < 0.5 always);
+    each forward solve starts from the previous iterate's solution of the same case.
 
     Args:
-        cases: load cases (matrix-free CG forward/adjoint solves, under jit).
-        E0, nu0: initial guess.
-        plane: 2D only: ``"strain"`` or ``"stress"`` (see :func:`~jaxelastic.materials.lame`).
-        optimizer: an optax ``GradientTransformation``; default ``optax.lbfgs()`` (with its
-            zoom line search, which is given the loss function and the warm start).
+        cases: :class:`LoadCase` s (or any objects following the case protocol).
+        init: initial :class:`Material` (scalars, or ``(n_regions,)`` arrays).
+        regions: None (one shared E, ν), ``(n_cells,)`` int labels ``0..R−1``
+            (piecewise-constant fields, e.g. a two-material bar), or ``"cells"``.
+        fields: which of ``"E"``, ``"nu"`` to fit; the others stay at ``init``.
+        plane: 2D only, ``"strain"`` or ``"stress"``.
+        optimizer: ``"lbfgs"`` (optax L-BFGS with zoom line search), ``"adam"``
+            (``optax.adam(learning_rate)``) or an optax ``GradientTransformation``.
+        learning_rate: Adam's step in the unconstrained variables.
         max_iter: maximum optimiser iterations.
-        gtol: stop when the unconstrained gradient norm is below this.
-        ftol: stop when the loss is below this.
-        settings, adjoint: Newton and adjoint settings.
-        progress: print one line per iteration.
+        gtol: stop (converged) when ``‖∇_z loss‖ ≤ gtol``.
+        ftol: stop (converged) when ``loss ≤ ftol``.
+        xtol: stop (converged) when an update moves z by ``≤ xtol`` (max norm).
+        regularization, reg_kind: weight and kind (``"tikhonov"``/``"tv"``) of the
+            smoothness term over adjacent regions (see :meth:`ParamMap.penalty`).
+        mesh: the mesh region labels refer to (default: the first case's ``pot.mesh``).
+        settings, adjoint: Newton settings (keep ``rtol`` tight, ≤ 1e-10, for accurate
+            gradients) and adjoint settings.
+        progress: show a tqdm progress bar with the loss and parameters.
 
     Raises:
         GradientError: a forward solve at an accepted iterate failed.
@@ -170,89 +355,189 @@ def fit(
     import optax
 
     t_start = time.perf_counter()
-    cases = list(cases)
-    dim = cases[0].pot.mesh.dim
-    E_ref = float(E0)
-    if optimizer is None:
-        optimizer = optax.lbfgs()
-
-    def params_of(z):
-        E, nu = from_unconstrained(z, E_ref)
-        mu, lam = lame(E, nu, dim=dim, plane=plane)
-        return Lame(mu, lam)
-
-    def total(z, cases, x0s):
-        p = params_of(z)
-        loss = 0.0
-        results = []
-        ok = True
-        for c, x0 in zip(cases, x0s, strict=True):
-            r = equilibrium_result(c.pot.replace(params=p), c.bc, x0, settings, None, adjoint)
-            loss = loss + _case_loss(c, r.x)
-            ok = ok & (r.status == Status.SUCCESS)
-            results.append(r)
-        return loss, (results, ok)
-
-    vg = jax.jit(jax.value_and_grad(total, has_aux=True))
-
-    def value_fn(z, cases, x0s):  # for the line search: failed solves are +inf
-        loss, (_, ok) = total(z, cases, x0s)
-        return jnp.where(ok, loss, jnp.inf)
-
-    @jax.jit
-    def opt_step(z, state, g, value, cases, x0s):
-        fn = functools.partial(value_fn, cases=cases, x0s=x0s)
-        updates, state = optimizer.update(g, state, z, value=value, grad=g, value_fn=fn)
-        return optax.apply_updates(z, updates), state
-
-    z = to_unconstrained(jnp.asarray(E0, jnp.float64), jnp.asarray(nu0, jnp.float64), E_ref)
+    obj = make_objective(
+        cases,
+        init,
+        regions=regions,
+        fields=fields,
+        plane=plane,
+        regularization=regularization,
+        reg_kind=reg_kind,
+        mesh=mesh,
+        settings=settings,
+        adjoint=adjoint,
+    )
+    if isinstance(optimizer, str):
+        optimizer = _named_optimizer(optimizer, float(learning_rate))
+    elif not isinstance(optimizer, optax.GradientTransformationExtraArgs):
+        optimizer = optax.with_extra_args_support(optimizer)
+    opt_step = _opt_step_fn(optimizer, settings, adjoint)
+    z = obj.z0
     state = optimizer.init(z)
-    x0s = [c.pot.mesh.points for c in cases]
-    hist_loss, hist_p, hist_g, hist_nw, hist_lin = [], [], [], [], []
-    converged = False
-    k = 0
-    while True:
-        (loss, (results, ok)), g = vg(z, cases, x0s)
-        if not bool(ok):
-            bad = [int(r.status) for r in results]
-            raise GradientError(f"forward solve failed at iterate {k} (statuses {bad})")
-        _check_finite_grads(g)
-        x0s = [r.x for r in results]
-        E, nu = from_unconstrained(z, E_ref)
-        gn = float(jnp.linalg.norm(g))
-        hist_loss.append(float(loss))
-        hist_p.append((float(E), float(nu)))
-        hist_g.append(gn)
-        hist_nw.append([int(r.steps) for r in results])
-        hist_lin.append([int(r.linear_iterations) for r in results])
-        if progress:
-            print(
-                f"fit {k:4d}  loss {float(loss):.3e}  E {float(E):.6g}  nu {float(nu):.6f}"
-                f"  |g| {gn:.2e}  newton {hist_nw[-1]}"
-            )
-        if gn <= gtol or float(loss) <= ftol:
-            converged = True
-            break
-        if k >= max_iter:
-            break
-        z_new, state = opt_step(z, state, g, loss, cases, x0s)
-        if bool(jnp.all(z_new == z)):  # no progress possible (line search stalled)
-            converged = gn <= 1e3 * gtol
-            break
-        z = z_new
-        k += 1
-    E, nu = from_unconstrained(z, E_ref)
+    warms = obj.initial_warms()
+    hist = dict(loss=[], p=[], g=[], nw=[], lin=[])
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=max_iter, desc="fit", unit="it")
+    k, reason = 0, "max_iter"
+    try:
+        while True:
+            try:
+                (loss, auxs), g = obj.value_and_grad(z, warms)
+            except GradientError as e:
+                raise GradientError(f"at fit iterate {k}: {e}") from None
+            warms = tuple(a.warm for a in auxs)
+            mat = obj.material(z)
+            gn = float(jnp.linalg.norm(g))
+            hist["loss"].append(float(loss))
+            hist["p"].append([np.asarray(mat.E), np.asarray(mat.nu)])
+            hist["g"].append(gn)
+            hist["nw"].append([int(a.newton_steps) for a in auxs])
+            hist["lin"].append([int(a.linear_iterations) for a in auxs])
+            if bar is not None:
+                bar.set_postfix(loss=f"{float(loss):.3e}", grad=f"{gn:.1e}", refresh=False)
+                if k:
+                    bar.update(1)
+            if gn <= gtol:
+                reason = "gtol"
+                break
+            if float(loss) <= ftol:
+                reason = "ftol"
+                break
+            if k >= max_iter:
+                break
+            z_new, state = opt_step(z, state, g, loss, obj.pm, obj.cases, warms)
+            step = float(jnp.max(jnp.abs(z_new - z)))
+            if not np.all(np.isfinite(np.asarray(z_new))):
+                raise GradientError(f"optimiser produced a non-finite iterate at {k}")
+            if step == 0.0:
+                reason = "stalled"  # no progress possible (line search failed)
+                break
+            z = z_new
+            k += 1
+            if step <= xtol:
+                reason = "xtol"
+                (loss, auxs), g = obj.value_and_grad(z, warms)
+                warms = tuple(a.warm for a in auxs)
+                mat = obj.material(z)
+                hist["loss"].append(float(loss))
+                hist["p"].append([np.asarray(mat.E), np.asarray(mat.nu)])
+                hist["g"].append(float(jnp.linalg.norm(g)))
+                hist["nw"].append([int(a.newton_steps) for a in auxs])
+                hist["lin"].append([int(a.linear_iterations) for a in auxs])
+                break
+    finally:
+        if bar is not None:
+            bar.close()
+    mat = obj.material(z)
+    if obj.pm.regions is None:
+        mat = Material(float(mat.E), float(mat.nu))
+    else:
+        mat = Material(np.asarray(mat.E), np.asarray(mat.nu))
     return FitResult(
-        E=float(E),
-        nu=float(nu),
-        loss=hist_loss[-1],
-        converged=converged,
+        material=mat,
+        E=mat.E,
+        nu=mat.nu,
+        loss=hist["loss"][-1],
+        converged=reason in ("gtol", "ftol", "xtol"),
+        stop_reason=reason,
         iterations=k,
-        loss_history=np.array(hist_loss),
-        param_history=np.array(hist_p),
-        grad_norm_history=np.array(hist_g),
-        newton_steps=np.array(hist_nw),
-        linear_iterations=np.array(hist_lin),
-        solutions=x0s,
+        loss_history=np.array(hist["loss"]),
+        param_history=np.array(hist["p"], dtype=np.float64),
+        grad_norm_history=np.array(hist["g"]),
+        newton_steps=np.array(hist["nw"]),
+        linear_iterations=np.array(hist["lin"]),
+        solutions=list(warms),
+        z=np.asarray(z),
         wall_time=time.perf_counter() - t_start,
     )
+
+
+def loss_landscape(
+    cases: Sequence,
+    E_values,
+    nu_values,
+    *,
+    plane: str = "strain",
+    settings: NewtonSettings = FIT_SETTINGS,
+    adjoint: AdjointSettings = DEFAULT_ADJOINT,
+    progress: bool = False,
+) -> np.ndarray:
+    """The weighted loss ``Σ_c w_c·loss_c`` on an (E, ν) grid (shared parameters).
+
+    Forward solves only, in a snake order (ν ascending, then descending on the next E),
+    each warm-started from its grid neighbour's solutions. A failed solve gives NaN.
+
+    Args:
+        cases: cases; E_values: ``(n_E,)`` [Pa]; nu_values: ``(n_nu,)``.
+    Returns:
+        ``(n_E, n_nu)`` array of losses.
+    """
+    cases = tuple(cases)
+    E_values, nu_values = np.asarray(E_values, float), np.asarray(nu_values, float)
+    dim = _default_mesh(cases).dim
+    out = np.full((E_values.size, nu_values.size), np.nan)
+    init = tuple(c.initial_warm() for c in cases)
+    warms = init
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=out.size, desc="landscape", unit="solve")
+    for i, E in enumerate(E_values):
+        js = range(nu_values.size) if i % 2 == 0 else range(nu_values.size - 1, -1, -1)
+        for j in js:
+            params = Lame(*lame(E, nu_values[j], dim=dim, plane=plane))
+            params = Lame(jnp.asarray(params.mu), jnp.asarray(params.lam))
+            loss, auxs = _forward(params, cases, warms, settings, adjoint)
+            if all(bool(a.ok) for a in auxs):
+                out[i, j] = float(loss)
+                warms = tuple(a.warm for a in auxs)
+            else:
+                warms = init
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    return out
+
+
+def loss_hessian(
+    cases: Sequence,
+    material: Material,
+    *,
+    plane: str = "strain",
+    h: float = 1e-4,
+    settings: NewtonSettings = NewtonSettings(rtol=1e-12),
+    adjoint: AdjointSettings = DEFAULT_ADJOINT,
+) -> np.ndarray:
+    """Hessian of the weighted loss w.r.t. ``(ln E, ν)`` at a shared material, ``(2, 2)``.
+
+    Central differences (step ``h``) of the implicit-adjoint gradient, symmetrised. At a
+    noise-free optimum (loss 0) it equals the Gauss–Newton matrix ``2 JᵀJ``, whose
+    conditioning measures identifiability: e.g. ``H_νν·(H⁻¹)_νν = 1/(1 − ρ²)`` is the
+    inflation of ν's variance by its correlation ρ with E (Bard 1974, *Nonlinear Parameter
+    Estimation*, §7-5).
+    """
+    cases = tuple(cases)
+    dim = _default_mesh(cases).dim
+    warms = tuple(c.initial_warm() for c in cases)
+
+    def total(theta, cases, warms):
+        params = Lame(*lame(jnp.exp(theta[0]), theta[1], dim=dim, plane=plane))
+        loss = 0.0
+        for c, w in zip(cases, warms, strict=True):
+            loss = loss + c.weight * c.evaluate(params, w, settings, adjoint)[0]
+        return loss
+
+    grad = value_and_grad(total)
+    theta = jnp.asarray([np.log(float(material.E)), float(material.nu)])
+    H = np.zeros((2, 2))
+    for i in range(2):
+        e = jnp.zeros(2).at[i].set(h)
+        gp = np.asarray(grad(theta + e, cases, warms)[1])
+        gm = np.asarray(grad(theta - e, cases, warms)[1])
+        H[:, i] = (gp - gm) / (2 * h)
+    return 0.5 * (H + H.T)

@@ -18,6 +18,7 @@ from jaxelastic import materials as M
 from jaxelastic.fitting import (
     GradientError,
     LoadCase,
+    Material,
     equilibrium,
     equilibrium_result,
     fit,
@@ -235,7 +236,7 @@ def test_fit_E_nu_two_load_cases(beam2):
     for p in pots:
         x = equilibrium(p, b.bc, None, TIGHT)
         cases.append(LoadCase(pot=p, bc=b.bc, observed=x))
-    res = fit(cases, 3.0 * E_true, nu_true - 0.15, max_iter=60, settings=TIGHT)
+    res = fit(cases, Material(3.0 * E_true, nu_true - 0.15), max_iter=60, settings=TIGHT)
     assert res.converged
     assert abs(res.E / E_true - 1) <= 1e-3, res.E
     assert abs(res.nu / nu_true - 1) <= 1e-3, res.nu
@@ -255,7 +256,7 @@ def test_fit_E_nu_markers(beam2):
     for p in [b.pot(params), b.pot(params, f=b.f_stretch)]:
         x = equilibrium(p, b.bc, None, TIGHT)
         cases.append(LoadCase(pot=p, bc=b.bc, observed=x[markers], nodes=markers))
-    res = fit(cases, 3.0 * E_true, nu_true - 0.15, max_iter=60, settings=TIGHT)
+    res = fit(cases, Material(3.0 * E_true, nu_true - 0.15), max_iter=60, settings=TIGHT)
     assert res.converged
     assert abs(res.E / E_true - 1) <= 1e-3, res.E
     assert abs(res.nu / nu_true - 1) <= 1e-3, res.nu
