@@ -9,7 +9,13 @@ Everything here is a pure function of ``(psi, x, mesh, params)``:
   leading axis of length ``n_cells`` is a per-cell field (e.g. ``Lame(mu=mu_cells,
   lam=1e4)``). Gradients w.r.t. params (shared or per-cell) just work.
 
-The total energy is ``E(x) = Σ_c Σ_q w_cq ψ(F_cq)``. Forces, HVP and element Hessians are
+The total energy is ``E(x) = Σ_c Σ_q w_cq ψ(F_cq)``; under the ``"fbar"`` formulation
+(``mesh.formulation``, static) F_cq is replaced by F̄_cq = (J̄_c/J_cq)^{1/d} F_cq
+(:func:`~jaxelastic.kinematics.f_bar`). F̄ couples the quadrature points of a cell, so the
+F-bar kernels differentiate the element energy with respect to the element's node
+positions (``jax.grad``/``jax.jvp``/``jax.hessian``) instead of contracting P with ∇N; they
+are still cell-local, so element Hessians are exact and every solver works unchanged.
+Nothing of it is traced for ``"standard"`` meshes. Forces, HVP and element Hessians are
 computed per element with ``jax.grad``/``jax.jvp``/``jax.hessian`` of ψ, contracted with the
 shape-function gradients, and assembled with a scatter-free node→slot gather
 (``mesh.incidence``): unsorted scatter-add is slow on XLA:CPU. ``jax.grad(energy)`` gives
@@ -23,7 +29,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from .kinematics import deformation_gradients
+from .kinematics import deformation_gradients, f_bar
 
 __all__ = [
     "first_piola",
@@ -73,7 +79,8 @@ def _per_cell(fn, params, n_cells):
 
 
 def energy_densities(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
-    """ψ at every quadrature point, ``(n_cells, n_q)`` [energy / rest measure]."""
+    """ψ at every quadrature point, ``(n_cells, n_q)`` [energy / rest measure] (of F̄
+    under the ``"fbar"`` formulation)."""
     F = deformation_gradients(x, mesh)
     ax = cell_params_axes(params, mesh.n_cells)
     per_q = jax.vmap(psi, in_axes=(0, None))
@@ -85,7 +92,21 @@ def energy(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     return jnp.sum(mesh.weights * energy_densities(psi, x, mesh, params))
 
 
-def _element_force(psi):
+def _fbar_element_energy(psi):
+    def ee(xe, dN, w, p):
+        F = f_bar(jnp.einsum("ka,qkb->qab", xe, dN), w)
+        return jnp.sum(w * jax.vmap(psi, in_axes=(0, None))(F, p))
+
+    return ee
+
+
+def _is_fbar(mesh) -> bool:
+    return getattr(mesh, "formulation", "standard") == "fbar"
+
+
+def _element_force(psi, fbar: bool = False):
+    if fbar:
+        return jax.grad(_fbar_element_energy(psi))
     P = first_piola(psi)
 
     def fe(xe, dN, w, p):
@@ -103,7 +124,8 @@ def element_forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     (Element *forces* are the negatives; this is the quantity that gets assembled.)
     """
     xe = x[mesh.cells]
-    return _per_cell(_element_force(psi), params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)
+    fe = _element_force(psi, _is_fbar(mesh))
+    return _per_cell(fe, params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)
 
 
 _MAX_UNROLLED_VALENCE = 256  # above this, gather (n_nodes, valence, d) then sum
@@ -134,7 +156,14 @@ def forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     return -assemble(mesh, element_forces(psi, x, mesh, params))
 
 
-def _element_hvp(psi):
+def _element_hvp(psi, fbar: bool = False):
+    if fbar:
+        g = jax.grad(_fbar_element_energy(psi))
+
+        def he_fbar(xe, ve, dN, w, p):
+            return jax.jvp(lambda y: g(y, dN, w, p), (xe,), (ve,))[1]
+
+        return he_fbar
     P = first_piola(psi)
 
     def he(xe, ve, dN, w, p):
@@ -153,7 +182,7 @@ def hvp(psi: Psi, x: jax.Array, v: jax.Array, mesh, params) -> jax.Array:
     Never forms a Hessian: per element, ``dP = jvp(∂ψ/∂F)(F; dF)`` with ``dF = Σ v_a ⊗ ∇N_a``.
     """
     xe, ve = x[mesh.cells], v[mesh.cells]
-    fn = jax.vmap(_element_hvp(psi), in_axes=(0, 0, 0, 0, cell_params_axes(params, mesh.n_cells)))
+    fn = jax.vmap(_element_hvp(psi, _is_fbar(mesh)), in_axes=(0, 0, 0, 0, cell_params_axes(params, mesh.n_cells)))
     return assemble(mesh, fn(xe, ve, mesh.dN, mesh.weights, params))
 
 
@@ -169,7 +198,16 @@ def project_psd(K: jax.Array, floor: float = 0.0) -> jax.Array:
     return jnp.einsum("...ij,...j,...kj->...ik", Q, lam, Q)
 
 
-def _element_hessian(psi):
+def _element_hessian(psi, fbar: bool = False):
+    if fbar:
+        ee = _fbar_element_energy(psi)
+
+        def ke_fbar(xe, dN, w, p):
+            k, d = xe.shape
+            return jax.hessian(ee)(xe, dN, w, p).reshape(k * d, k * d)
+
+        return ke_fbar
+
     def ke(xe, dN, w, p):
         F = jnp.einsum("ka,qkb->qab", xe, dN)
         C = jax.vmap(jax.hessian(psi, argnums=0), in_axes=(0, None))(F, p)  # (q,d,d,d,d)
@@ -188,5 +226,6 @@ def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = Fa
             :func:`project_psd`), for Newton on indefinite configurations.
     """
     xe = x[mesh.cells]
-    K = _per_cell(_element_hessian(psi), params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)
+    ke = _element_hessian(psi, _is_fbar(mesh))
+    K = _per_cell(ke, params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)
     return project_psd(K) if project else K

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 
 __all__ = [
     "deformation_gradients",
+    "f_bar",
     "det",
     "cofactor",
     "green_strain",
@@ -35,18 +36,55 @@ __all__ = [
 ]
 
 
-def deformation_gradients(x: jax.Array, mesh) -> jax.Array:
+def deformation_gradients(x: jax.Array, mesh, *, fbar: bool | None = None) -> jax.Array:
     """F at every quadrature point: ``F = Σ_a x_a ⊗ ∇N_a`` (``= Ds·Dm⁻¹`` for P1).
+
+    Under the ``"fbar"`` formulation this is the F the energy uses, F̄ (see :func:`f_bar`).
 
     Args:
         x: ``(n_nodes, dim)`` current positions [length].
         mesh: a :class:`~jaxelastic.mesh.Mesh`.
+        fbar: apply F-bar; default: when ``mesh.formulation == "fbar"``. ``fbar=False``
+            gives the compatible F of the displacement field.
 
     Returns:
         ``(n_cells, n_q, dim, dim)`` deformation gradients (dimensionless).
     """
     xe = x[mesh.cells]  # (c, k, d)
-    return jnp.einsum("cka,cqkb->cqab", xe, mesh.dN)
+    F = jnp.einsum("cka,cqkb->cqab", xe, mesh.dN)
+    if fbar is None:
+        fbar = getattr(mesh, "formulation", "standard") == "fbar"
+    return jax.vmap(f_bar)(F, mesh.weights) if fbar else F
+
+
+def f_bar(F: jax.Array, w: jax.Array) -> jax.Array:
+    """F-bar of one cell: ``F̄_q = (J̄/J_q)^{1/d} F_q`` with ``J̄ = Σ_q w_q J_q / Σ_q w_q``.
+
+    de Souza Neto, Perić, Dutko & Owen 1996, IJSS 33:3277, eq. (8), with the cell average
+    of J (a patch average for composite elements, de Souza Neto et al. 2005, IJNME
+    62:353): det F̄_q = J̄, so the volumetric part of ψ sees one J per cell (P2/P0-like
+    for P2, one volume constraint per patch for composite elements) while the isochoric
+    part keeps F_q. Works for any ψ(F).
+
+    Inversion: where ``J_q ≤ 0`` or ``J̄ ≤ 0`` the ratio is undefined (a negative ratio
+    would give a finite ψ of a reflected F̄); there F̄_q = F_q is returned, so the
+    material's own inversion handling applies (neo-Hookean: +∞, which the Newton line
+    search rejects). As ``J_q → 0⁺`` at fixed J̄ > 0, F̄_q → ∞, a barrier for any ψ that
+    grows with stretch.
+
+    Args:
+        F: ``(n_q, d, d)`` compatible deformation gradients of one cell.
+        w: ``(n_q,)`` positive quadrature weights (rest measure included).
+
+    Returns:
+        ``(n_q, d, d)`` F̄.
+    """
+    d = F.shape[-1]
+    J = jax.vmap(det)(F)
+    Jbar = jnp.sum(w * J) / jnp.sum(w)
+    ok = (J > 0) & (Jbar > 0)
+    ratio = jnp.where(ok, Jbar / jnp.where(ok, J, 1.0), 1.0)  # safe: no NaN in gradients
+    return (ratio ** (1.0 / d))[:, None, None] * F
 
 
 def _det_poly(F):

@@ -32,7 +32,14 @@ __all__ = [
     "cook_membrane",
     "boundary_facets",
     "boundary_nodes",
+    "to_quadratic",
+    "with_formulation",
+    "vertex_nodes",
+    "linear_cells",
+    "FORMULATIONS",
 ]
+
+FORMULATIONS = ("standard", "fbar")
 
 
 class MeshError(ValueError):
@@ -52,7 +59,11 @@ class Mesh:
             [length^dim]; ``weights.sum(1)`` is the rest measure |T| of each cell.
         incidence: ``(n_nodes, max_valence)`` int32; entry ``c*k + a`` says node is local
             node ``a`` of cell ``c``; padded with ``n_cells*nodes_per_cell`` (a zero slot).
-        element: static :class:`~jaxelastic.elements.Element` name (``"tri3"``, ``"tet4"``).
+        element: static :class:`~jaxelastic.elements.Element` name (``"tri3"``, ``"tet4"``,
+            ``"tri6"``, ``"tet10"``, ``"tri3x4"``, ``"tet4x8"``).
+        formulation: static; ``"standard"`` (ψ at every quadrature point's F) or ``"fbar"``
+            (F̄ = (J̄/J)^{1/d} F with J̄ the cell average of J, see
+            :func:`~jaxelastic.kinematics.deformation_gradients`).
     """
 
     points: jax.Array
@@ -61,6 +72,7 @@ class Mesh:
     weights: jax.Array
     incidence: jax.Array
     element: str = dataclasses.field(metadata=dict(static=True), default="tri3")
+    formulation: str = dataclasses.field(metadata=dict(static=True), default="standard")
 
     @property
     def dim(self) -> int:
@@ -98,8 +110,23 @@ class Mesh:
 jax.tree_util.register_dataclass(
     Mesh,
     data_fields=["points", "cells", "dN", "weights", "incidence"],
-    meta_fields=["element"],
+    meta_fields=["element", "formulation"],
 )
+
+
+_INFER = {(2, 3): "tri3", (3, 4): "tet4", (2, 6): "tri6", (3, 10): "tet10"}
+# local node permutation swapping corners 1 and 2 (and the mid-edge nodes with them)
+_FLIP = {
+    3: [0, 2, 1],
+    4: [0, 2, 1, 3],
+    6: [0, 2, 1, 5, 4, 3],
+    10: [0, 2, 1, 3, 6, 5, 4, 7, 9, 8],
+}
+
+
+def _check_formulation(formulation: str) -> None:
+    if formulation not in FORMULATIONS:
+        raise ValueError(f"formulation must be one of {FORMULATIONS}, got {formulation!r}")
 
 
 def _rest_jacobians(points: np.ndarray, cells: np.ndarray, element: Element) -> np.ndarray:
@@ -129,26 +156,32 @@ def from_arrays(
     *,
     orient: str = "fix",
     dtype=None,
+    formulation: str = "standard",
 ) -> Mesh:
     """Validate rest points and cells and build a :class:`Mesh`.
 
     Args:
         points: ``(n_nodes, dim)`` rest positions, dim 2 or 3.
         cells: ``(n_cells, nodes_per_cell)`` integer connectivity.
-        element: ``"tri3"``/``"tet4"`` (or meshio's ``"triangle"``/``"tetra"``); inferred
-            from the shapes when omitted.
+        element: ``"tri3"``/``"tet4"``/``"tri6"``/``"tet10"``/``"tri3x4"``/``"tet4x8"`` (or
+            meshio's ``"triangle"``/``"tetra"``/``"triangle6"``/``"tetra10"``); inferred
+            from the shapes when omitted (6-node cells: ``tri6``, 10-node: ``tet10``).
         orient: ``"fix"`` (reorient negatively oriented cells, with a warning) or
             ``"refuse"`` (raise :class:`MeshError`).
         dtype: float dtype of the stored arrays (default: the points' dtype if it is a
             float type JAX accepts, else JAX's default float).
+        formulation: ``"standard"`` or ``"fbar"`` (not for P1 cells, where it changes
+            nothing: use ``to_quadratic(mesh, composite=True)``).
 
     Raises:
         MeshError: wrong shapes or dimension, NaN/inf coordinates, out-of-range or
             duplicate indices within a cell, nodes used by no cell, zero-measure cells,
-            or inverted cells with ``orient="refuse"``.
+            or inverted cells with ``orient="refuse"``; P2/composite cells whose rest
+            Jacobian changes sign between quadrature points (misplaced mid-edge nodes).
     """
     if orient not in ("fix", "refuse"):
         raise ValueError(f"orient must be 'fix' or 'refuse', got {orient!r}")
+    _check_formulation(formulation)
     pts = np.asarray(points)
     cls = np.asarray(cells)
     if pts.ndim != 2 or pts.shape[1] not in (2, 3):
@@ -167,11 +200,11 @@ def from_arrays(
         else:
             raise MeshError(f"cells must hold integer node indices, got dtype {cls.dtype}")
     if element is None:
-        element = {(2, 3): "tri3", (3, 4): "tet4"}.get((dim, cls.shape[1]))
+        element = _INFER.get((dim, cls.shape[1]))
         if element is None:
             raise MeshError(
                 f"cannot infer the element from {dim}D points and {cls.shape[1]}-node cells; "
-                "supported: 3-node triangles in 2D, 4-node tetrahedra in 3D"
+                "supported: 3- or 6-node triangles in 2D, 4- or 10-node tetrahedra in 3D"
             )
     try:
         el = get_element(element)
@@ -182,6 +215,11 @@ def from_arrays(
     if cls.shape[1] != el.n_nodes:
         raise MeshError(
             f"element {el.name!r} has {el.n_nodes} nodes per cell, cells have {cls.shape[1]}"
+        )
+    if formulation == "fbar" and el.n_nodes == el.dim + 1:
+        raise MeshError(
+            "formulation 'fbar' on P1 cells changes nothing (one quadrature point per cell); "
+            "use to_quadratic(mesh, composite=True) for the composite F-bar element"
         )
     bad = ~np.isfinite(pts).all(axis=1)
     if bad.any():
@@ -226,7 +264,14 @@ def from_arrays(
             f"{c.size} cell(s) have zero rest measure (collinear/coplanar nodes), e.g. cell "
             f"{c[0]}: nodes {cls[c[0]].tolist()}"
         )
-    inverted = (detJ < 0).any(axis=1)
+    mixed = (detJ < 0).any(axis=1) & (detJ > 0).any(axis=1)
+    if mixed.any():
+        c = np.flatnonzero(mixed)
+        raise MeshError(
+            f"{c.size} {el.name} cell(s) have a rest Jacobian that changes sign inside the "
+            f"cell (misplaced mid-edge nodes), e.g. cell {c[0]}: nodes {cls[c[0]].tolist()}"
+        )
+    inverted = (detJ < 0).all(axis=1)
     if inverted.any():
         c = np.flatnonzero(inverted)
         if orient == "refuse":
@@ -234,15 +279,13 @@ def from_arrays(
                 f"{c.size} cell(s) are inverted at rest (negative orientation), e.g. cell "
                 f"{c[0]}: nodes {cls[c[0]].tolist()}; pass orient='fix' to reorient them"
             )
-        if el.name not in ("tri3", "tet4"):
-            raise MeshError(f"reorienting {el.name!r} cells is not supported")
         warnings.warn(
             f"reoriented {c.size} of {cls.shape[0]} cell(s) with negative rest orientation",
             UserWarning,
             stacklevel=2,
         )
         cls = cls.copy()
-        cls[c, 1], cls[c, 2] = cls[c, 2].copy(), cls[c, 1].copy()
+        cls[c] = cls[c][:, _FLIP[el.n_nodes]]
         Jac = _rest_jacobians(pts, cls, el)
         detJ = np.linalg.det(Jac)
 
@@ -260,6 +303,7 @@ def from_arrays(
         weights=jnp.asarray(w, dtype=dtype),
         incidence=jnp.asarray(inc),
         element=el.name,
+        formulation=formulation,
     )
 
 
@@ -269,16 +313,27 @@ def _check_counts(**counts):
             raise ValueError(f"{k} must be a positive integer, got {v!r}")
 
 
-def rectangle(nx: int, ny: int, size=(1.0, 1.0), origin=(0.0, 0.0), **kw) -> Mesh:
+def rectangle(
+    nx: int,
+    ny: int,
+    size=(1.0, 1.0),
+    origin=(0.0, 0.0),
+    *,
+    order: int = 1,
+    formulation: str = "standard",
+    **kw,
+) -> Mesh:
     """Structured triangle mesh of a rectangle: ``nx × ny`` cells, 2 triangles each.
 
     Args:
         nx, ny: cells along x and y.
         size: ``(Lx, Ly)`` [length].
         origin: lower-left corner.
+        order, formulation: see :func:`_finish` (``order=2`` → ``tri6``;
+            ``formulation="fbar"`` with order 1 → composite ``tri3x4``).
 
     Returns:
-        A ``tri3`` mesh with ``(nx+1)(ny+1)`` nodes and ``2·nx·ny`` triangles. Node
+        For the default order 1, a ``tri3`` mesh with ``(nx+1)(ny+1)`` nodes and ``2·nx·ny`` triangles. Node
         ``i + (nx+1)·j`` sits at ``origin + (i·Lx/nx, j·Ly/ny)``.
     """
     _check_counts(nx=nx, ny=ny)
@@ -290,7 +345,7 @@ def rectangle(nx: int, ny: int, size=(1.0, 1.0), origin=(0.0, 0.0), **kw) -> Mes
     n0 = (i + (nx + 1) * j).ravel()
     n1, n2, n3 = n0 + 1, n0 + nx + 2, n0 + nx + 1
     tris = np.concatenate([np.stack([n0, n1, n2], 1), np.stack([n0, n2, n3], 1)])
-    return from_arrays(pts, tris, "tri3", **kw)
+    return _finish(pts, tris, "tri3", order, formulation, kw)
 
 
 # Kuhn (Freudenthal) subdivision of the unit cube along the main diagonal 0→7: six tets,
@@ -300,7 +355,17 @@ _KUHN = np.array(
 )
 
 
-def box(nx: int, ny: int, nz: int, size=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), **kw) -> Mesh:
+def box(
+    nx: int,
+    ny: int,
+    nz: int,
+    size=(1.0, 1.0, 1.0),
+    origin=(0.0, 0.0, 0.0),
+    *,
+    order: int = 1,
+    formulation: str = "standard",
+    **kw,
+) -> Mesh:
     """Structured tetrahedral mesh of a box: ``nx·ny·nz`` cubes, 6 conforming tets each.
 
     Each cube is split into six tets along a diagonal (Kuhn/Freudenthal); the split is
@@ -310,9 +375,11 @@ def box(nx: int, ny: int, nz: int, size=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0),
         nx, ny, nz: cells along each axis.
         size: ``(Lx, Ly, Lz)`` [length].
         origin: the minimum corner.
+        order, formulation: see :func:`_finish` (``order=2`` → ``tet10``;
+            ``formulation="fbar"`` with order 1 → composite ``tet4x8``).
 
     Returns:
-        A ``tet4`` mesh with ``(nx+1)(ny+1)(nz+1)`` nodes and ``6·nx·ny·nz`` tets; node
+        For the default order 1, a ``tet4`` mesh with ``(nx+1)(ny+1)(nz+1)`` nodes and ``6·nx·ny·nz`` tets; node
         ``i + (nx+1)(j + (ny+1)k)`` sits at ``origin + (i·Lx/nx, j·Ly/ny, k·Lz/nz)``.
     """
     _check_counts(nx=nx, ny=ny, nz=nz)
@@ -345,16 +412,18 @@ def box(nx: int, ny: int, nz: int, size=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0),
     flip = ((pi + pj + pk) & 1).astype(bool)  # an odd number of mirrors reverses orientation
     tets[flip] = tets[flip][:, :, [0, 2, 1, 3]]
     tets = tets.reshape(-1, 4)
-    return from_arrays(pts, tets, "tet4", **kw)
+    return _finish(pts, tets, "tet4", order, formulation, kw)
 
 
-def cook_membrane(n: int, **kw) -> Mesh:
+def cook_membrane(n: int, *, order: int = 1, formulation: str = "standard", **kw) -> Mesh:
     """Cook's membrane: the trapezoid (0,0), (48,44), (48,60), (0,44), ``n × n`` quads split
     into ``2n²`` triangles.
 
     The left edge ``x = 0`` is the clamped side, the right edge ``x = 48`` the loaded one;
     node ``i + (n+1)·j`` is at parameter ``(i/n, j/n)``, so the loaded-edge mid-point
-    (48, 52) is a node when ``n`` is even. See Cook (1974); REFERENCES "Cook's membrane".
+    (48, 52) is a node when ``n`` is even (for ``order=2`` always: the mid-edge node of
+    the middle edge). ``order``/``formulation`` as in :func:`_finish`. See Cook (1974);
+    REFERENCES "Cook's membrane".
     """
     _check_counts(n=n)
     s = np.linspace(0.0, 1.0, n + 1)
@@ -369,21 +438,24 @@ def cook_membrane(n: int, **kw) -> Mesh:
     n0 = (i + (n + 1) * j).ravel()
     n1, n2, n3 = n0 + 1, n0 + n + 2, n0 + n + 1
     tris = np.concatenate([np.stack([n0, n1, n2], 1), np.stack([n0, n2, n3], 1)])
-    return from_arrays(pts, tris, "tri3", **kw)
+    return _finish(pts, tris, "tri3", order, formulation, kw)
 
 
 def boundary_facets(mesh: Mesh) -> np.ndarray:
     """Facets (edges in 2D, triangles in 3D) that belong to exactly one cell.
 
     Returns:
-        ``(n_facets, dim)`` int array of node indices, oriented so the right-hand-rule
-        normal points out of the body (edge ``(a, b)``: normal ``(t_y, -t_x)``).
+        ``(n_facets, n_facet_nodes)`` int array of node indices: the ``dim`` corners,
+        oriented so the right-hand-rule normal points out of the body (edge ``(a, b)``:
+        normal ``(t_y, -t_x)``), then for P2/composite meshes the facet's mid-edge nodes
+        (2D: 3 nodes ``(a, b, mid)``; 3D: 6 nodes ``(a, b, c, m_ab, m_bc, m_ca)``, the
+        meshio ``line3``/``triangle6`` order).
     """
     el = mesh.element_type
     cells = np.asarray(mesh.cells)
     local = np.asarray(el.facet_nodes)  # (f, m)
     facets = cells[:, local].reshape(-1, local.shape[1])
-    key = np.sort(facets, axis=1)
+    key = np.sort(facets[:, : mesh.dim], axis=1)  # corners identify a facet
     _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     return facets[counts[inv.ravel()] == 1]
 
@@ -391,3 +463,99 @@ def boundary_facets(mesh: Mesh) -> np.ndarray:
 def boundary_nodes(mesh: Mesh) -> np.ndarray:
     """Sorted indices of nodes on the boundary, ``(n_boundary,)``."""
     return np.unique(boundary_facets(mesh))
+
+
+def _finish(pts, cells, p1: str, order: int, formulation: str, kw) -> Mesh:
+    """Build the generator's mesh: P1 for ``order=1``; ``order=2`` → P2 (``tri6``/``tet10``);
+    ``formulation="fbar"`` with order 1 → the composite element (``tri3x4``/``tet4x8``, P1
+    displacements on the P2 node set with one volume constraint per cell), with order 2 →
+    P2 + F-bar."""
+    if order not in (1, 2):
+        raise ValueError(f"order must be 1 or 2, got {order!r}")
+    _check_formulation(formulation)
+    m = from_arrays(pts, cells, p1, **kw)
+    if order == 1 and formulation == "standard":
+        return m
+    return to_quadratic(m, composite=order == 1, formulation=formulation)
+
+
+def _edge_table(element: Element):
+    from .elements import _TET_EDGES, _TRI_EDGES
+
+    return np.asarray(_TRI_EDGES if element.dim == 2 else _TET_EDGES)
+
+
+def to_quadratic(mesh: Mesh, *, composite: bool = False, formulation: str | None = None) -> Mesh:
+    """P1 → P2 (``tri6``/``tet10``) by adding a node at the midpoint of every edge.
+
+    Shared edges get one node. P1 node indices are kept; the new nodes are appended in the
+    lexicographic order of their edges' sorted end-node pairs (deterministic).
+
+    Args:
+        mesh: a ``tri3``/``tet4`` mesh.
+        composite: build the composite element ``tri3x4``/``tet4x8`` (same nodes; each cell
+            split into 4 / 8 linear sub-simplices) instead of P2.
+        formulation: ``"standard"``/``"fbar"``; default: ``"fbar"`` when ``composite``
+            (that is what the composite element is for), else ``mesh.formulation``.
+
+    Returns:
+        A new :class:`Mesh` (same float dtype) with ``n_nodes + n_edges`` nodes.
+    """
+    el = mesh.element_type
+    if el.n_nodes != el.dim + 1:
+        raise ValueError(f"to_quadratic needs a P1 mesh, got element {el.name!r}")
+    if formulation is None:
+        formulation = "fbar" if composite else mesh.formulation
+    cells = np.asarray(mesh.cells, dtype=np.int64)
+    X = np.asarray(mesh.points, dtype=np.float64)
+    loc = _edge_table(el)  # (e, 2)
+    pairs = np.sort(cells[:, loc], axis=2)  # (c, e, 2)
+    edges, inv = np.unique(pairs.reshape(-1, 2), axis=0, return_inverse=True)
+    mids = X[edges].mean(axis=1)
+    new_cells = np.concatenate([cells, X.shape[0] + inv.reshape(cells.shape[0], -1)], axis=1)
+    name = {2: "tri3x4", 3: "tet4x8"}[el.dim] if composite else {2: "tri6", 3: "tet10"}[el.dim]
+    return from_arrays(
+        np.concatenate([X, mids]),
+        new_cells,
+        name,
+        orient="refuse",
+        dtype=mesh.points.dtype,
+        formulation=formulation,
+    )
+
+
+def with_formulation(mesh: Mesh, formulation: str) -> Mesh:
+    """The same mesh with another formulation (``"standard"`` or ``"fbar"``).
+
+    Raises:
+        ValueError: unknown formulation, or ``"fbar"`` on a P1 mesh (one quadrature point
+            per cell: F-bar would change nothing; use ``to_quadratic(mesh, composite=True)``).
+    """
+    _check_formulation(formulation)
+    el = mesh.element_type
+    if formulation == "fbar" and el.n_nodes == el.dim + 1:
+        raise ValueError(
+            "formulation 'fbar' on a P1 mesh changes nothing (one quadrature point per cell); "
+            "use to_quadratic(mesh, composite=True) for the composite F-bar element"
+        )
+    return dataclasses.replace(mesh, formulation=formulation)
+
+
+def vertex_nodes(mesh: Mesh) -> np.ndarray:
+    """Sorted indices of the nodes that are cell corners (all nodes for P1), ``(m,)``."""
+    return np.unique(np.asarray(mesh.cells)[:, : mesh.dim + 1])
+
+
+def linear_cells(mesh: Mesh) -> np.ndarray:
+    """Linear sub-simplices covering the mesh, ``(m, dim+1)`` node indices (positive
+    orientation at rest for straight-sided cells): the cells themselves for P1, the red
+    refinement (4 triangles / 8 tets per cell) for P2 and composite meshes. Used for
+    plotting and for interpolating P2 fields piecewise linearly."""
+    from .elements import TET4X8, TRI3X4
+
+    el = mesh.element_type
+    cells = np.asarray(mesh.cells)
+    if el.n_nodes == el.dim + 1:
+        return cells
+    sub = np.asarray((TRI3X4 if el.dim == 2 else TET4X8).sub_cells)
+    return cells[:, sub].reshape(-1, el.dim + 1)
