@@ -22,8 +22,17 @@ adjoint solve did not converge, *every* floating-point cotangent is NaN; the hos
 helpers (:func:`value_and_grad`, :func:`fit`) check for that and raise
 :class:`GradientError`. Gradients are never silently computed at a non-equilibrium point.
 
-Forward mode (``jax.jvp``/``jax.jacfwd``) is **not** supported by :func:`equilibrium`
-(it is a ``jax.custom_vjp``); use reverse mode.
+Forward mode (``jax.jvp``/``jax.jacfwd``): ``equilibrium(..., mode="forward")`` is a
+``jax.custom_jvp`` whose rule solves the tangent system (same solvers, NaN on failure)::
+
+    K_ff ẋ_f = −(∂g_f/∂θ)·θ̇ − K_fD v̇_D,   ẋ_D = v̇_D
+
+through ``lax.custom_linear_solve(symmetric=True)``. We chose this over ``lax.custom_root``
+(which would re-derive the tangent system from a residual function and hide the Dirichlet
+split and failure flag) because the linear solve is transposable: the same function also
+supports reverse mode, where JAX transposes the tangent solve into the adjoint solve. The
+default ``mode="reverse"`` keeps the leaner ``jax.custom_vjp`` (nothing beyond ``x*`` is
+computed in the forward pass).
 """
 
 from __future__ import annotations
@@ -35,6 +44,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
+from jax.ad_checkpoint import checkpoint_name
 
 from . import potential as pot_mod
 from .loads import Dirichlet
@@ -43,6 +54,8 @@ from .solvers.linear import block_jacobi, cg
 from .solvers.newton import NewtonResult, NewtonSettings, Status, make_linear, newton
 
 __all__ = [
+    "MODES",
+    "X_STAR",
     "AdjointSettings",
     "GradientError",
     "equilibrium",
@@ -98,22 +111,30 @@ def _hessian_operator(pot: Potential, x, Ke):
     return H
 
 
-def _adjoint_solve(pot: Potential, x, mask, rhs, linear, adj: AdjointSettings):
-    """Solve ``K_ff λ = rhs_f`` (λ = 0 on prescribed dofs). Returns (λ, H, converged)."""
+def _operators(pot: Potential, x, mask):
+    """Exact Hessian pieces at x: element Hessians, H, the Dirichlet-masked operator
+    ``A = P_f H P_f + P_D`` and the block-Jacobi preconditioner of ``A``."""
     free = ~mask
     fm = free.astype(x.dtype)
     Ke = pot_mod.elastic_element_hessians(pot, x, project=False)
     H = _hessian_operator(pot, x, Ke)
-    b = fm * rhs
-    bn = jnp.sqrt(jnp.sum(b * b))
-    blocks = pot_mod.node_hessian_blocks(pot, Ke)
-    M = block_jacobi(blocks, free)
 
     def A(v):
         return fm * H(fm * v) + (1.0 - fm) * v
 
+    M = block_jacobi(pot_mod.node_hessian_blocks(pot, Ke), free)
+    return Ke, H, A, M
+
+
+def _solve_ff(pot: Potential, x, mask, rhs, linear, adj: AdjointSettings, ops):
+    """Solve ``K_ff y = rhs_f`` (y = 0 on prescribed dofs) with the operators ``ops`` of
+    :func:`_operators`. Returns ``(y, converged)``."""
+    Ke, H, A, M = ops
+    fm = (~mask).astype(x.dtype)
+    b = fm * rhs
+    bn = jnp.sqrt(jnp.sum(b * b))
     if linear is None:
-        lam0 = jnp.zeros_like(b)
+        y0 = jnp.zeros_like(b)
     else:
         # host sparse solve (symmetrised element Hessians), then polished by PCG below: the
         # host solver's own acceptance test cannot reach ~1e-12 on every matrix, and its
@@ -126,31 +147,43 @@ def _adjoint_solve(pot: Potential, x, mask, rhs, linear, adj: AdjointSettings):
             jax.ShapeDtypeStruct((), jnp.bool_),
         )
         Ks = 0.5 * (Ke + jnp.swapaxes(Ke, 1, 2))
-        lam0, _, projected = jax.pure_callback(
+        y0, _, projected = jax.pure_callback(
             linear, shapes, Ks, md, b, jnp.asarray(max(adj.rtol, 1e-10), x.dtype)
         )
-        lam0 = jnp.where(projected | ~jnp.all(jnp.isfinite(lam0)), 0.0, fm * lam0)
-    r0 = b - A(lam0)
+        y0 = jnp.where(projected | ~jnp.all(jnp.isfinite(y0)), 0.0, fm * y0)
+    r0 = b - A(y0)
     res = cg(A, r0, M, tol=adj.rtol * bn, max_iter=adj.max_iter)
-    lam = fm * (lam0 + res.x)
+    y = fm * (y0 + res.x)
     ok = (res.status == 0) | (bn == 0)
-    return lam, H, ok & jnp.all(jnp.isfinite(lam))
+    return y, ok & jnp.all(jnp.isfinite(y))
+
+
+def _adjoint_solve(pot: Potential, x, mask, rhs, linear, adj: AdjointSettings):
+    """Solve ``K_ff λ = rhs_f`` (λ = 0 on prescribed dofs). Returns (λ, H, converged)."""
+    ops = _operators(pot, x, mask)
+    lam, ok = _solve_ff(pot, x, mask, rhs, linear, adj, ops)
+    return lam, ops[1], ok
+
+
+X_STAR = "jaxelastic.x_star"
+"""``jax.ad_checkpoint.checkpoint_name`` of the Newton solution and status inside
+:func:`equilibrium` (reverse mode): a ``jax.checkpoint`` policy saving these names
+(``save_only_these_names(X_STAR)``) never re-runs a Newton solve when rematerialising."""
 
 
 @functools.cache
-def _equilibrium_fn(settings: NewtonSettings, linear, adj: AdjointSettings):
+def _attach_fn(linear, adj: AdjointSettings):
+    """``attach(pot, bc, x*, status) = x*`` with the implicit-function-theorem VJP."""
+
     @jax.custom_vjp
-    def solve_fn(pot, x0, bc):
-        res = newton(pot, x0, bc, settings, linear)
-        return res._replace(wall_time=jnp.asarray(jnp.nan, x0.dtype))
+    def attach(pot, bc, x, status):
+        return x
 
-    def fwd(pot, x0, bc):
-        res = solve_fn(pot, x0, bc)
-        return res, (pot, bc, res.x, res.status)
+    def fwd(pot, bc, x, status):
+        return x, (pot, bc, x, status)
 
-    def bwd(saved, res_bar):
+    def bwd(saved, xbar):
         pot, bc, x, status = saved
-        xbar = res_bar.x
         mask = bc.mask
         fm = (~mask).astype(x.dtype)
         lam, H, adj_ok = _adjoint_solve(pot, x, mask, xbar, linear, adj)
@@ -165,10 +198,81 @@ def _equilibrium_fn(settings: NewtonSettings, linear, adj: AdjointSettings):
         bc_bar = Dirichlet(mask=_float0_like(mask), values=vals_bar)
         pot_bar = _nan_unless(ok, pot_bar)
         bc_bar = _nan_unless(ok, bc_bar)
-        return pot_bar, jnp.zeros_like(x), bc_bar
+        return pot_bar, bc_bar, jnp.zeros_like(x), _float0_like(status)
 
-    solve_fn.defvjp(fwd, bwd)
+    attach.defvjp(fwd, bwd)
+    return attach
+
+
+@functools.cache
+def _equilibrium_fn(settings: NewtonSettings, linear, adj: AdjointSettings):
+    """Reverse mode: Newton on stopped inputs, then :func:`_attach_fn` (custom VJP)."""
+    attach = _attach_fn(linear, adj)
+
+    def solve_fn(pot, x0, bc):
+        stop = lax.stop_gradient
+        res = newton(stop(pot), stop(x0), stop(bc), settings, linear)
+        x = checkpoint_name(res.x, X_STAR)
+        status = checkpoint_name(res.status, X_STAR)
+        x = attach(pot, bc, x, status)
+        return res._replace(x=x, status=status, wall_time=jnp.asarray(jnp.nan, x0.dtype))
+
     return solve_fn
+
+
+def _zero_tangent(a):
+    """Zero tangent of an output leaf (float0 for integer leaves)."""
+    if _is_float(a):
+        return jnp.zeros_like(a)
+    return _float0_like(a)
+
+
+@functools.cache
+def _equilibrium_jvp_fn(settings: NewtonSettings, linear, adj: AdjointSettings):
+    """Forward-mode rule: ``K_ff ẋ_f = −(∂g_f/∂θ)·θ̇ − K_fD v̇_D``, ``ẋ_D = v̇_D``.
+
+    The tangent solve is a ``lax.custom_linear_solve`` with ``symmetric=True``, so JAX can
+    transpose it: reverse mode over this rule (``jax.grad``) is the same adjoint solve.
+    """
+
+    @jax.custom_jvp
+    def solve_fn(pot, x0, bc):
+        res = newton(pot, x0, bc, settings, linear)
+        return res._replace(wall_time=jnp.asarray(jnp.nan, x0.dtype))
+
+    @solve_fn.defjvp
+    def jvp(primals, tangents):
+        pot, x0, bc = primals
+        pot_dot, _, bc_dot = tangents
+        res = solve_fn(pot, x0, bc)
+        x = res.x
+        mask = bc.mask
+        fm = (~mask).astype(x.dtype)
+        ops = _operators(pot, x, mask)
+        H, A = ops[1], ops[2]
+
+        def g_free(p):
+            return fm * pot_mod.gradient(p, x)
+
+        _, g_dot = jax.jvp(g_free, (pot,), (pot_dot,))  # (∂g_f/∂θ)·θ̇
+        v_dot = (1.0 - fm) * bc_dot.values  # ẋ_D = v̇_D
+        rhs = -(g_dot + fm * H(v_dot))
+
+        def solve(_, b):  # not differentiated: only linear in b, NaN if it failed
+            y, ok = _solve_ff(pot, x, mask, b, linear, adj, ops)
+            return jnp.where(ok, y, jnp.nan)
+
+        y = lax.custom_linear_solve(A, rhs, solve, symmetric=True)
+        # multiplying by 1 or NaN keeps the tangent linear (and so transposable)
+        scale = jnp.where(res.status == Status.SUCCESS, 1.0, jnp.nan).astype(x.dtype)
+        x_dot = scale * (fm * y + v_dot)
+        res_dot = jax.tree_util.tree_map(_zero_tangent, res)._replace(x=x_dot)
+        return res, res_dot
+
+    return solve_fn
+
+
+MODES = ("reverse", "forward")
 
 
 def equilibrium_result(
@@ -178,14 +282,18 @@ def equilibrium_result(
     settings: NewtonSettings = NewtonSettings(),
     linear=None,
     adjoint: AdjointSettings = DEFAULT_ADJOINT,
+    mode: str = "reverse",
 ) -> NewtonResult:
     """Like :func:`equilibrium` but returns the whole :class:`NewtonResult` (status,
-    iterations, …); only ``.x`` carries gradients. Pure and jit-compatible."""
+    iterations, …); only ``.x`` carries derivatives. Pure and jit-compatible."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if x0 is None:
         x0 = pot.mesh.points
     if isinstance(linear, str):
         linear = make_linear(pot.mesh, bc, linear)
-    return _equilibrium_fn(settings, linear, adjoint)(pot, jnp.asarray(x0), bc)
+    make = _equilibrium_fn if mode == "reverse" else _equilibrium_jvp_fn
+    return make(settings, linear, adjoint)(pot, jnp.asarray(x0), bc)
 
 
 def equilibrium(
@@ -195,22 +303,28 @@ def equilibrium(
     settings: NewtonSettings = NewtonSettings(),
     linear=None,
     adjoint: AdjointSettings = DEFAULT_ADJOINT,
+    mode: str = "reverse",
 ) -> jax.Array:
     """Differentiable static equilibrium ``x*`` ``(n_nodes, dim)`` (pure, jit-compatible).
 
-    Reverse-mode differentiable with respect to ``pot`` (all floating leaves: material
-    parameters, ``f_ext``, …) and ``bc.values`` by the implicit function theorem (one
-    adjoint linear solve). The cotangent of ``x0`` is zero. If the forward Newton solve
-    (or the adjoint solve) failed, all cotangents are NaN. Forward mode is not supported.
+    Differentiable with respect to ``pot`` (all floating leaves: material parameters,
+    ``f_ext``, …) and ``bc.values`` by the implicit function theorem (one linear solve with
+    the Hessian at ``x*``). The derivative with respect to ``x0`` is zero. If the forward
+    Newton solve (or the adjoint/tangent solve) failed, all derivatives are NaN.
 
     Args:
         pot: the potential; bc: Dirichlet data; x0: initial guess (default: rest shape).
         settings: Newton settings (use a tight ``rtol``, e.g. 1e-10, for accurate gradients).
         linear: None (matrix-free PCG forward and adjoint), a HostLinearSolver, or a
             string for :func:`~jaxelastic.solvers.newton.make_linear` (outside jit only).
-        adjoint: :class:`AdjointSettings`.
+        adjoint: :class:`AdjointSettings` (also used for the tangent solve).
+        mode: ``"reverse"`` (default): a ``jax.custom_vjp``, reverse mode only (``grad``,
+            ``vjp``, ``jacrev``). ``"forward"``: a ``jax.custom_jvp`` whose tangent solve is
+            a transposable ``lax.custom_linear_solve``: ``jvp``/``jacfwd`` *and* reverse
+            mode (JAX transposes the tangent solve into the same adjoint solve), at the
+            price of computing the Hessian at ``x*`` in the forward pass.
     """
-    return equilibrium_result(pot, bc, x0, settings, linear, adjoint).x
+    return equilibrium_result(pot, bc, x0, settings, linear, adjoint, mode).x
 
 
 def _check_finite_grads(grads):
