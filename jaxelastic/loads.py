@@ -6,10 +6,12 @@ box or plane, or from a mesh file's physical groups (:mod:`jaxelastic.io`). Dead
 constant nodal vector ``f_ext`` of shape ``(n_nodes, dim)`` [force]; the solvers add
 ``−f_extᵀx`` to the potential only when a scene has loads.
 
-Consistent integration on linear facets/cells: a constant traction t on a facet of rest
-measure A gives ``A·t/dim`` to each of its ``dim`` nodes (∫N_a dA = A/dim); a body force
-density ρg on a cell of rest measure V gives ``ρ g V/(dim+1)`` per node, which is also the
-lumped mass times g.
+Consistent integration: a constant traction t on a facet gives ``t·∫N_a dA`` to its nodes
+(linear facets: ``A·t/dim`` each; 3-node P2 edges: ``A/6, A/6, 2A/3``; 6-node P2 triangles:
+0 at corners and ``A/3`` at mid-nodes; composite facets are piecewise linear), integrated
+with the isoparametric facet geometry (:func:`facet_integrals`). Masses are lumped: row sums
+for P1 and composite cells, HRZ diagonal scaling for P2 (:func:`lumped_mass`); gravity is
+mass × g by default, or the consistent ``∫ρ g N_a dV`` (``consistent=True``).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .elements import Element, facet_rule
 from .energy import first_piola, forces
 from .kinematics import deformation_gradients
 from .mesh import Mesh, boundary_facets
@@ -35,6 +38,7 @@ __all__ = [
     "nodes_on_plane",
     "facets_where",
     "facet_normals",
+    "facet_integrals",
     "traction_load",
     "point_load",
     "gravity_load",
@@ -151,44 +155,91 @@ def nodes_on_plane(mesh: Mesh, axis: int, value: float, tol: float | None = None
 
 
 def facets_where(mesh: Mesh, predicate: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-    """Boundary facets ``(m, dim)`` whose every node satisfies ``predicate(X) -> bool``."""
+    """Boundary facets ``(m, n_facet_nodes)`` whose every node satisfies
+    ``predicate(X) -> bool`` (corners and, for P2/composite meshes, mid-edge nodes)."""
     facets = boundary_facets(mesh)
     ok = np.asarray(predicate(np.asarray(mesh.points)), dtype=bool)
     return facets[ok[facets].all(axis=1)]
 
 
-def facet_normals(points, facets) -> tuple[np.ndarray, np.ndarray]:
-    """Unit outward normals ``(m, dim)`` and measures ``(m,)`` of boundary facets."""
-    P = np.asarray(points)[np.asarray(facets)]
-    if P.shape[-1] == 2:
-        t = P[:, 1] - P[:, 0]
-        nvec = np.stack([t[:, 1], -t[:, 0]], axis=1)
+def _facet_element(dim: int, n_facet_nodes: int, element: Element | str | None) -> Element:
+    from .elements import get_element
+
+    if element is not None:
+        el = get_element(element) if isinstance(element, str) else element
     else:
-        nvec = 0.5 * np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-    area = np.linalg.norm(nvec, axis=1)
-    return nvec / area[:, None], area
+        el = get_element(
+            {(2, 2): "tri3", (3, 3): "tet4", (2, 3): "tri6", (3, 6): "tet10"}.get(
+                (dim, n_facet_nodes), "tri3"
+            )
+        )
+    if el.dim != dim or len(el.facet_nodes[0]) != n_facet_nodes:
+        raise ValueError(
+            f"{n_facet_nodes}-node facets in {dim}D do not belong to element {el.name!r}"
+        )
+    return el
+
+
+def facet_integrals(points, facets, element: Element | str | None = None):
+    """Integrals over rest boundary facets with the element's facet interpolation.
+
+    Args:
+        points: ``(n_nodes, dim)`` rest positions.
+        facets: ``(m, n_facet_nodes)`` node indices (as :func:`~jaxelastic.mesh.boundary_facets`).
+        element: the mesh's element (name or :class:`~jaxelastic.elements.Element`); by
+            default P1 or P2 from the number of facet nodes (composite meshes: pass it).
+
+    Returns:
+        ``(shape_integrals (m, n_facet_nodes), area (m,), normal (m, dim))``: ``∫N_a dA``
+        per facet node, the facet measure, and the unit outward normal of the facet's
+        vector area ``∫n dA`` (the exact normal for straight facets).
+    """
+    X = np.asarray(points, dtype=np.float64)
+    facets = np.asarray(facets, dtype=np.int64)
+    if facets.ndim != 2:
+        raise ValueError(f"facets must have shape (m, n_facet_nodes), got {facets.shape}")
+    d = X.shape[1]
+    el = _facet_element(d, facets.shape[1], element)
+    N, dN, w = facet_rule(el)  # (r, k), (r, k, d-1), (r,)
+    T = np.einsum("mka,rkb->mrab", X[facets], dN)  # tangents (m, r, d, d-1)
+    if d == 2:
+        nvec = np.stack([T[..., 1, 0], -T[..., 0, 0]], axis=-1)  # (t_y, -t_x)
+    else:
+        nvec = np.cross(T[..., 0], T[..., 1])
+    da = np.linalg.norm(nvec, axis=-1)  # (m, r) surface Jacobian
+    area = da @ w
+    vec = np.einsum("r,mra->ma", w, nvec)
+    normal = vec / np.linalg.norm(vec, axis=1, keepdims=True)
+    return np.einsum("r,mr,rk->mk", w, da, N), area, normal
+
+
+def facet_normals(points, facets, element: Element | str | None = None):
+    """Unit outward normals ``(m, dim)`` and measures ``(m,)`` of boundary facets
+    (``(m, dim)`` linear facets or P2 facets; see :func:`facet_integrals`)."""
+    _, area, normal = facet_integrals(points, facets, element)
+    return normal, area
 
 
 def traction_load(mesh: Mesh, facets, traction) -> np.ndarray:
     """Nodal forces ``(n_nodes, dim)`` of a dead traction on boundary facets.
 
     Args:
-        facets: ``(m, dim)`` node indices of boundary facets.
+        facets: ``(m, n_facet_nodes)`` node indices of boundary facets.
         traction: force per *reference* area, ``(dim,)`` or ``(m, dim)`` [Pa];
-            a callable ``t(X_centroid (m, dim)) -> (m, dim)``.
+            a callable ``t(X_centroid (m, dim)) -> (m, dim)`` (centroid of the corners).
+            Constant per facet, integrated consistently: ``f_a = t ∫N_a dA``.
     """
     X = np.asarray(mesh.points)
     facets = np.asarray(facets, dtype=np.int64)
     n, d = X.shape
-    _, area = facet_normals(X, facets)
+    Nint, _, _ = facet_integrals(X, facets, mesh.element_type)
     if callable(traction):
-        t = np.asarray(traction(X[facets].mean(axis=1)), float)
+        t = np.asarray(traction(X[facets[:, :d]].mean(axis=1)), float)
     else:
         t = np.broadcast_to(np.asarray(traction, float), (facets.shape[0], d))
     f = np.zeros((n, d))
-    share = (area[:, None] * t) / facets.shape[1]
     for a in range(facets.shape[1]):
-        np.add.at(f, facets[:, a], share)
+        np.add.at(f, facets[:, a], Nint[:, a, None] * t)
     return f
 
 
@@ -201,24 +252,78 @@ def point_load(mesh: Mesh, nodes, force) -> np.ndarray:
     return f
 
 
-def lumped_mass(mesh: Mesh, density) -> np.ndarray:
-    """Lumped (row-sum) nodal masses ``(n_nodes,)`` [kg] from density ρ [kg/m^dim]
-    (scalar or per cell): ``m_a = Σ_c ρ_c |T_c| / (dim + 1)`` for P1."""
-    vol = np.asarray(mesh.volumes)
-    rho = np.broadcast_to(np.asarray(density, float), vol.shape)
+def _density(mesh: Mesh, density) -> np.ndarray:
+    rho = np.broadcast_to(np.asarray(density, float), (mesh.n_cells,))
     if np.any(rho <= 0) or not np.all(np.isfinite(rho)):
         raise ValueError("density must be finite and > 0")
-    cells = np.asarray(mesh.cells)
+    return rho
+
+
+def _scatter(mesh: Mesh, cells: np.ndarray, share: np.ndarray) -> np.ndarray:
     m = np.zeros(mesh.n_nodes)
-    share = rho * vol / cells.shape[1]
     for a in range(cells.shape[1]):
-        np.add.at(m, cells[:, a], share)
+        np.add.at(m, cells[:, a], share[:, a])
     return m
 
 
-def gravity_load(mesh: Mesh, density, g) -> np.ndarray:
-    """Nodal body forces ``(n_nodes, dim)`` of gravity ``g`` (``(dim,)`` [m/s²])."""
-    return lumped_mass(mesh, density)[:, None] * np.asarray(g, float)[None, :]
+def _p2_rule_integrals(mesh: Mesh):
+    """Per cell, with the element's mass rule: ``∫N_a dV`` ``(c, k)`` and ``∫N_a² dV``."""
+    el = mesh.element_type
+    xi, w = el.mass_rule()
+    N = el.shape_functions(xi)  # (r, k)
+    G = el.shape_gradients(xi)  # (r, k, d)
+    X = np.asarray(mesh.points, dtype=np.float64)[np.asarray(mesh.cells)]
+    detJ = np.linalg.det(np.einsum("cka,rkb->crab", X, G))  # (c, r)
+    wd = detJ * w[None, :]
+    return wd @ N, wd @ (N * N)
+
+
+def _sub_shares(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Composite cells: linear sub-simplices ``(c·s, d+1)`` and their measures / (d+1)."""
+    el = mesh.element_type
+    cells = np.asarray(mesh.cells)[:, np.asarray(el.sub_cells)]  # (c, s, d+1)
+    share = np.asarray(mesh.weights, dtype=np.float64) / (el.dim + 1)  # (c, s)
+    return cells.reshape(-1, el.dim + 1), np.repeat(share.reshape(-1, 1), el.dim + 1, axis=1)
+
+
+def lumped_mass(mesh: Mesh, density) -> np.ndarray:
+    """Lumped nodal masses ``(n_nodes,)`` [kg] from density ρ [kg/m^dim] (scalar or per cell).
+
+    * P1: row sums, ``m_a = Σ_c ρ_c |T_c| / (dim + 1)``;
+    * composite (``tri3x4``/``tet4x8``): row sums over the linear sub-simplices;
+    * P2: HRZ diagonal scaling (Hinton, Rock & Zienkiewicz 1976, *Earthquake Eng. Struct.
+      Dyn.* 4:245): ``m_a = ρ V M_aa / Σ_b M_bb`` with ``M_aa = ∫N_a² dV`` (row sums would
+      give zero corner masses for ``tri6`` and negative ones for ``tet10``). All positive;
+      each cell's masses add up to ρV.
+    """
+    rho = _density(mesh, density)
+    el = mesh.element_type
+    if el.is_composite:
+        cells, share = _sub_shares(mesh)
+        return _scatter(mesh, cells, share * np.repeat(rho, len(el.sub_cells))[:, None])
+    cells = np.asarray(mesh.cells)
+    if el.order == 1:
+        share = (rho * np.asarray(mesh.volumes) / cells.shape[1])[:, None]
+        return _scatter(mesh, cells, np.repeat(share, cells.shape[1], axis=1))
+    n1, n2 = _p2_rule_integrals(mesh)
+    vol = n1.sum(axis=1)
+    return _scatter(mesh, cells, (rho * vol)[:, None] * n2 / n2.sum(axis=1, keepdims=True))
+
+
+def gravity_load(mesh: Mesh, density, g, *, consistent: bool = False) -> np.ndarray:
+    """Nodal body forces ``(n_nodes, dim)`` of gravity ``g`` (``(dim,)`` [m/s²]).
+
+    By default lumped mass × g, so a body in free fall under :mod:`~jaxelastic.dynamics`
+    (which uses the same lumped masses) accelerates rigidly. ``consistent=True`` gives the
+    work-equivalent ``ρ g ∫N_a dV`` (identical for P1 and composite cells; for P2 it is the
+    load of the optimal convergence rates, with negative corner shares on ``tet10``).
+    """
+    gv = np.asarray(g, float)[None, :]
+    if not consistent or mesh.element_type.order == 1:
+        return lumped_mass(mesh, density)[:, None] * gv
+    rho = _density(mesh, density)
+    n1, _ = _p2_rule_integrals(mesh)
+    return _scatter(mesh, np.asarray(mesh.cells), rho[:, None] * n1)[:, None] * gv
 
 
 def reaction_force(
@@ -241,22 +346,25 @@ def reaction_force(
 def facet_tractions(psi, x, mesh: Mesh, params, facets) -> np.ndarray:
     """Nominal traction ``τ = P·N`` ``(m, dim)`` on boundary facets (force / reference area).
 
-    P is evaluated in the cell that owns each facet (first quadrature point), N is the
-    outward rest normal.
+    P is the weighted average over the quadrature points of the cell that owns each facet
+    (the one value for P1; of P(F̄) under F-bar), N is the outward rest normal.
     """
     facets = np.asarray(facets, dtype=np.int64)
     el = mesh.element_type
+    d = mesh.dim
     cells = np.asarray(mesh.cells)
     local = np.asarray(el.facet_nodes)
-    all_f = np.sort(cells[:, local].reshape(-1, local.shape[1]), axis=1)
+    all_f = np.sort(cells[:, local[:, :d]].reshape(-1, d), axis=1)
     owner = {tuple(k): i // local.shape[0] for i, k in enumerate(all_f)}
     try:
-        cidx = np.array([owner[tuple(k)] for k in np.sort(facets, axis=1)])
+        cidx = np.array([owner[tuple(k)] for k in np.sort(facets[:, :d], axis=1)])
     except KeyError as e:
         raise ValueError(f"facet {e.args[0]} is not a facet of any cell") from None
-    N, _ = facet_normals(mesh.points, facets)
-    F = deformation_gradients(x, mesh)[cidx, 0]
+    _, _, N = facet_integrals(mesh.points, facets, el)
+    F = deformation_gradients(x, mesh)[cidx]  # (m, q, d, d)
+    w = mesh.weights[cidx]  # (m, q)
     ax = jax.tree_util.tree_map(lambda leaf: None if jnp.ndim(leaf) == 0 else 0, params)
     p = jax.tree_util.tree_map(lambda leaf: leaf if jnp.ndim(leaf) == 0 else leaf[cidx], params)
-    P = jax.vmap(first_piola(psi), in_axes=(0, ax))(F, p)
+    Pq = jax.vmap(jax.vmap(first_piola(psi), in_axes=(0, None)), in_axes=(0, ax))(F, p)
+    P = jnp.einsum("mq,mqij->mij", w, Pq) / jnp.sum(w, axis=1)[:, None, None]
     return np.asarray(jnp.einsum("mij,mj->mi", P, jnp.asarray(N)))

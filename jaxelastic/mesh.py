@@ -333,8 +333,8 @@ def rectangle(
             ``formulation="fbar"`` with order 1 → composite ``tri3x4``).
 
     Returns:
-        For the default order 1, a ``tri3`` mesh with ``(nx+1)(ny+1)`` nodes and ``2·nx·ny`` triangles. Node
-        ``i + (nx+1)·j`` sits at ``origin + (i·Lx/nx, j·Ly/ny)``.
+        For the default order 1, a ``tri3`` mesh with ``(nx+1)(ny+1)`` nodes and
+        ``2·nx·ny`` triangles. Node ``i + (nx+1)·j`` sits at ``origin + (i·Lx/nx, j·Ly/ny)``.
     """
     _check_counts(nx=nx, ny=ny)
     x = np.linspace(0.0, size[0], nx + 1) + origin[0]
@@ -379,8 +379,9 @@ def box(
             ``formulation="fbar"`` with order 1 → composite ``tet4x8``).
 
     Returns:
-        For the default order 1, a ``tet4`` mesh with ``(nx+1)(ny+1)(nz+1)`` nodes and ``6·nx·ny·nz`` tets; node
-        ``i + (nx+1)(j + (ny+1)k)`` sits at ``origin + (i·Lx/nx, j·Ly/ny, k·Lz/nz)``.
+        For the default order 1, a ``tet4`` mesh with ``(nx+1)(ny+1)(nz+1)`` nodes and
+        ``6·nx·ny·nz`` tets; node ``i + (nx+1)(j + (ny+1)k)`` sits at
+        ``origin + (i·Lx/nx, j·Ly/ny, k·Lz/nz)``.
     """
     _check_counts(nx=nx, ny=ny, nz=nz)
     axes = [np.linspace(0.0, size[a], n + 1) + origin[a] for a, n in enumerate((nx, ny, nz))]

@@ -234,7 +234,7 @@ def test_element_dimension_mismatch_refused():
         from_arrays(TRI_PTS, [[0, 1, 2, 3]], "tet4")
 
 
-@pytest.mark.parametrize("element", ["quad", "triangle6", "hex8"])
+@pytest.mark.parametrize("element", ["quad", "quad9", "hex8"])
 def test_unsupported_element_refused(element):
     with pytest.raises(MeshError, match="unsupported element type"):
         from_arrays(TRI_PTS, TRI_CELLS, element)
