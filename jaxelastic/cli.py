@@ -1,5 +1,5 @@
-"""Command line: ``jaxelastic run [SCENE] --out DIR``, ``jaxelastic crosscheck``, ``jaxelastic
-scenes`` (also ``python -m jaxelastic ...``).
+"""Command line: ``jaxelastic run [SCENE] --out DIR``, ``jaxelastic fit SCENE --out DIR``,
+``jaxelastic crosscheck``, ``jaxelastic scenes`` (also ``python -m jaxelastic ...``).
 
 ``run`` without a SCENE runs the shipped ``default`` scene (a neo-Hookean beam released
 under gravity, simulated until it settles and compared with the static solution). SCENE is
@@ -88,6 +88,24 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--no-cache", action="store_true", help="do not use the persistent compilation cache"
     )
+    f = sub.add_parser(
+        "fit",
+        help="fit E and nu to observed shapes as the scene's [fit] section says",
+        description="Identify (E, nu) from observed (or synthetic) deformed shapes of a "
+        "static scene with a [fit] section; writes summary.json, fit.png and observed.npz "
+        "into --out. (`jaxelastic run` on a scene with [fit] does the same.)",
+    )
+    f.add_argument("scene", help="a scene TOML file with a [fit] section, or a shipped scene name")
+    f.add_argument("--out", "-o", default=None, metavar="DIR", help="output directory")
+    f.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a scene entry, e.g. --set fit.max_iter=20 (TOML value)",
+    )
+    f.add_argument("--no-progress", action="store_true", help="no progress bar or messages")
+    f.add_argument("--no-cache", action="store_true", help="no persistent compilation cache")
     sub.add_parser(
         "crosscheck",
         help="check autodiff stress/forces/HVP against hand derivations and finite "
@@ -199,6 +217,8 @@ def _run(args) -> int:
     try:
         scene = load_scene(args.scene, overrides=overrides)
         out = args.out or os.path.join("jaxelastic-out", scene.name)
+        if args.command == "fit" or scene.get("fit") is not None:
+            return _fit(scene, out, args, t0)
         summary = run_scene(scene, out, progress=not args.no_progress)
     except SceneError as e:
         print(f"jaxelastic: error: {e}", file=sys.stderr)
@@ -214,6 +234,42 @@ def _run(args) -> int:
         print(f"  wall time of the command: {time.perf_counter() - t0:.1f} s")
     else:
         print(json.dumps({"status": summary["status"], "out": summary["outputs"]["directory"]}))
+    return 0
+
+
+def _fit(scene, out: str, args, t0: float) -> int:
+    """``jaxelastic fit`` (or ``run`` on a scene with ``[fit]``): see jaxelastic._scene_fit."""
+    from ._scene_fit import highlights, run_fit
+    from .implicit import GradientError
+    from .scenes import SceneError
+    from .solvers.newton import SolveError
+
+    try:
+        summary = run_fit(scene, out, progress=not args.no_progress)
+    except SceneError as e:
+        print(f"jaxelastic: error: {e}", file=sys.stderr)
+        return 2
+    except (SolveError, GradientError) as e:
+        print(f"jaxelastic: fit failed: {e}", file=sys.stderr)
+        return 1
+    except OSError as e:
+        print(f"jaxelastic: error: {e}", file=sys.stderr)
+        return 2
+    if not args.no_progress:
+        print(highlights(summary))
+        print(f"  wall time of the command: {time.perf_counter() - t0:.1f} s")
+    else:
+        r = summary["result"]
+        print(
+            json.dumps(
+                dict(
+                    status=summary["status"],
+                    out=summary["outputs"]["directory"],
+                    E=r["E"],
+                    nu=r["nu"],
+                )
+            )
+        )
     return 0
 
 

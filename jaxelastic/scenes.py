@@ -178,6 +178,7 @@ _TOP = (
     "solver",
     "integrator",
     "output",
+    "fit",
 )
 _STATIC_KEYS = ("type", "load_steps")
 _DYNAMIC_KEYS = (
@@ -701,6 +702,10 @@ def _validate(v: _V, raw, base_dir: str):
     data["solver"] = _check_solver(v, t.get("solver", {}))
     data["integrator"] = _check_integrator(v, t.get("integrator", {}), base_dir, checks)
     data["output"] = _check_output(v, t.get("output", {}), checks)
+    if "fit" in t:  # material identification: validated and run by jaxelastic._scene_fit
+        from ._scene_fit import check_fit
+
+        data["fit"] = check_fit(v, t["fit"], data)
 
     mat, integ = data["material"], data["integrator"]
     dynamic = integ["type"] == "dynamic"

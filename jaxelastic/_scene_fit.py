@@ -1,0 +1,490 @@
+"""Material identification from a scene: the ``[fit]`` section, ``jaxelastic fit SCENE``.
+
+A static scene with a ``[fit]`` section describes one or more load cases (the scene itself,
+plus ``[[fit.case]]`` entries that override scene keys, e.g. a second traction), where the
+observed deformed positions come from (a file per case, or a synthetic target solved at
+given "true" parameters, optionally on a refined mesh), which nodes are observed (all, or a
+random fraction as markers), observation noise, the initial guess and the optimiser.
+:func:`run_fit` fits (E, ν) with :func:`jaxelastic.fitting.fit` and writes
+``summary.json``, ``fit.png`` (loss and parameter trajectories) and ``observed.npz``.
+
+Scene keys (``[material]`` E/ν are the initial guess unless ``[fit].initial`` is given)::
+
+    [fit]
+    target = { E = 1e6, nu = 0.3, refine = 1 }  # synthetic observations: solve the scene at
+                                  # these parameters (refine = r: on a mesh with r× the cells
+                                  # per axis, observed at the fitting mesh's nodes, which are
+                                  # also fine-mesh nodes; generator meshes only)
+    # observed = "obs.npz"        # ... or a file of observed positions for the scene's case:
+                                  # .npy (n_nodes, dim) all nodes, .npz with "positions"
+                                  # (n_obs, dim) and optional "nodes" (n_obs,), or .csv rows
+                                  # "node, x, y[, z]"
+    initial = { E = 3e6, nu = 0.15 }  # default: [material].E and .nu
+    fields = ["E", "nu"]          # which parameters are fitted (the others stay at initial)
+    markers = 1.0                 # fraction of the mesh's nodes observed (random, among nodes
+                                  # not fully clamped; the same markers in every case)
+    noise = 0.0                   # relative Gaussian noise (σ = noise × RMS displacement)
+    seed = 0                      # markers and noise
+    optimizer = "lbfgs"           # or "adam" (with learning_rate)
+    learning_rate = 0.05
+    max_iter = 100
+    gtol = 1e-10                  # stop when the gradient norm (unconstrained vars) is below
+
+    [[fit.case]]                  # more load cases: scene overrides (dotted keys), weight,
+    set = { "traction.0.traction" = [2e4, 0, 0] }   # and (file targets) observed = "..."
+    weight = 1.0
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from .io import _write_atomic
+from .scenes import _V, Scene, SceneError, load_scene
+
+__all__ = ["FIT_KEYS", "CASE_KEYS", "check_fit", "run_fit", "nested_nodes", "choose_markers"]
+
+FIT_KEYS = (
+    "target",
+    "observed",
+    "initial",
+    "fields",
+    "markers",
+    "noise",
+    "seed",
+    "optimizer",
+    "learning_rate",
+    "max_iter",
+    "gtol",
+    "case",
+)
+CASE_KEYS = ("set", "observed", "weight")
+_TARGET_KEYS = ("E", "nu", "refine")
+_OUTPUTS = ("summary.json", "fit.png", "observed.npz")
+
+
+# ----------------------------------------------------------------------------------------
+# validation (called by jaxelastic.scenes while loading a scene)
+# ----------------------------------------------------------------------------------------
+
+
+def _E_nu(v: _V, key: str, x, required=("E", "nu"), extra=()) -> dict:
+    t = v.table(key, x, ("E", "nu", *extra), required)
+    out = {}
+    if "E" in t:
+        out["E"] = v.number(f"{key}.E", t["E"], gt=0)
+    if "nu" in t:
+        out["nu"] = v.number(f"{key}.nu", t["nu"], gt=-1, lt=0.5)
+    return out | {k: t[k] for k in extra if k in t}
+
+
+def check_fit(v: _V, x, data: dict) -> dict:
+    """Validate a ``[fit]`` table (``data``: the scene validated so far); returns it with
+    defaults filled in. Raises :class:`SceneError` naming the offending key."""
+    t = v.table("[fit]", x, FIT_KEYS)
+    out: dict[str, Any] = {}
+    if ("target" in t) == ("observed" in t):
+        raise v.err("[fit] needs exactly one of target = { E, nu } (synthetic) or observed")
+    if "target" in t:
+        out["target"] = _E_nu(v, "[fit].target", t["target"], extra=("refine",))
+        if "refine" in out["target"]:
+            r = v.integer("[fit].target.refine", out["target"]["refine"], ge=1)
+            if r > 1 and "generator" not in data["mesh"]:
+                raise v.err("[fit].target.refine needs a [mesh].generator (not a mesh file)")
+    else:
+        out["observed"] = v.string("[fit].observed", t["observed"])
+    mat = data["material"]
+    if "initial" in t:
+        out["initial"] = _E_nu(v, "[fit].initial", t["initial"], required=())
+    else:
+        out["initial"] = {}
+    for k in ("E", "nu"):
+        if k not in out["initial"]:
+            if k not in mat:
+                raise v.err(f"[fit].initial.{k} is required ([material] has no {k})")
+            out["initial"][k] = mat[k]
+    fields = t.get("fields", ["E", "nu"])
+    if not isinstance(fields, (list, tuple)) or not fields:
+        raise v.err(f"[fit].fields must be a non-empty array of 'E', 'nu', got {fields!r}")
+    out["fields"] = [v.string(f"[fit].fields[{i}]", f, ("E", "nu")) for i, f in enumerate(fields)]
+    if len(set(out["fields"])) != len(out["fields"]):
+        raise v.err(f"[fit].fields has duplicates: {fields!r}")
+    out["markers"] = v.number("[fit].markers", t.get("markers", 1.0), gt=0, le=1)
+    out["noise"] = v.number("[fit].noise", t.get("noise", 0.0), ge=0)
+    out["seed"] = v.integer("[fit].seed", t.get("seed", 0), ge=0)
+    out["optimizer"] = v.string("[fit].optimizer", t.get("optimizer", "lbfgs"), ("lbfgs", "adam"))
+    out["learning_rate"] = v.number("[fit].learning_rate", t.get("learning_rate", 0.05), gt=0)
+    out["max_iter"] = v.integer("[fit].max_iter", t.get("max_iter", 100), ge=0)
+    out["gtol"] = v.number("[fit].gtol", t.get("gtol", 1e-10), gt=0)
+    cases = t.get("case", [])
+    if not isinstance(cases, (list, tuple)):
+        raise v.err(f"[[fit.case]] must be an array of tables, got {cases!r}")
+    out["case"] = []
+    for i, c in enumerate(cases):
+        key = f"[fit.case][{i}]"
+        c = v.table(key, c, CASE_KEYS)
+        cc = {"set": dict(v.table(f"{key}.set", c.get("set", {}), tuple(c.get("set", {}))))}
+        for path in cc["set"]:
+            if path.split(".")[0] in ("mesh", "fit", "integrator"):
+                raise v.err(f"{key}.set: {path!r} cannot be changed per load case")
+        cc["weight"] = v.number(f"{key}.weight", c.get("weight", 1.0), gt=0)
+        if "observed" in c:
+            if "target" in out:
+                raise v.err(f"{key}.observed: not with a synthetic [fit].target")
+            cc["observed"] = v.string(f"{key}.observed", c["observed"])
+        elif "observed" in out:
+            raise v.err(f"{key}.observed is required (the scene's targets come from files)")
+        out["case"].append(cc)
+    if data["integrator"]["type"] != "static":
+        raise v.err("[fit] needs a static scene ([integrator].type = 'static')")
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------
+
+
+def nested_nodes(fine_points, coarse_points, tol: float = 1e-9) -> np.ndarray:
+    """Index of each coarse node among the fine nodes at the same rest position.
+
+    Args:
+        fine_points: ``(n_fine, dim)``; coarse_points: ``(n_coarse, dim)`` rest positions.
+        tol: relative to the bounding-box diagonal.
+    Returns:
+        ``(n_coarse,)`` int indices into the fine mesh.
+    Raises:
+        ValueError: a coarse node has no fine node at its position (not a nested mesh).
+    """
+    from scipy.spatial import cKDTree
+
+    fine, coarse = np.asarray(fine_points), np.asarray(coarse_points)
+    d, idx = cKDTree(fine).query(coarse)
+    diag = float(np.linalg.norm(np.ptp(fine, axis=0)))
+    if d.size and d.max() > tol * max(diag, 1e-300):
+        raise ValueError(
+            f"meshes are not nested: a coarse node is {d.max():.3g} from any fine node"
+        )
+    return idx.astype(np.int64)
+
+
+def choose_markers(mask, fraction: float, seed: int, candidates=None) -> np.ndarray:
+    """Sorted random marker nodes: ``max(1, round(fraction·n_nodes))`` of the nodes that are
+    not fully prescribed (``mask`` ``(n_nodes, dim)`` bool) and, if given, in
+    ``candidates``; all such nodes when ``fraction = 1``."""
+    mask = np.asarray(mask)
+    n = mask.shape[0]
+    ok = ~mask.all(axis=1)
+    if candidates is not None:
+        sel = np.zeros(n, bool)
+        sel[np.asarray(candidates)] = True
+        ok &= sel
+    pool = np.flatnonzero(ok)
+    if fraction >= 1.0:
+        return pool
+    k = min(pool.size, max(1, int(round(fraction * n))))
+    return np.sort(np.random.default_rng(seed).choice(pool, size=k, replace=False))
+
+
+def _read_observed(v: _V, key: str, path: str, n_nodes: int, dim: int):
+    """(positions (n_obs, dim), nodes (n_obs,)) from a .npy / .npz / .csv file."""
+    if not os.path.isfile(path):
+        raise v.err(f"{key}: no such file {path!r}")
+    nodes = None
+    try:
+        if path.endswith(".npy"):
+            pos = np.load(path)
+        elif path.endswith(".npz"):
+            with np.load(path) as z:
+                if "positions" not in z:
+                    raise v.err(f"{key}: {path!r} has no array 'positions' (has {list(z)})")
+                pos = z["positions"]
+                nodes = z["nodes"] if "nodes" in z else None
+        elif path.endswith((".csv", ".txt")):
+            a = np.loadtxt(path, delimiter="," if path.endswith(".csv") else None, ndmin=2)
+            if a.shape[1] != dim + 1:
+                raise v.err(f"{key}: {path!r} must have columns node, x, y[, z] ({dim + 1})")
+            nodes, pos = a[:, 0], a[:, 1:]
+        else:
+            raise v.err(f"{key}: {path!r} must be a .npy, .npz or .csv file")
+    except (OSError, ValueError) as e:
+        raise v.err(f"{key}: cannot read {path!r}: {e}") from None
+    pos = np.asarray(pos, float)
+    if nodes is None:
+        if pos.shape != (n_nodes, dim):
+            raise v.err(
+                f"{key}: expected positions of all {n_nodes} nodes ({n_nodes}, {dim}), "
+                f"got {pos.shape}"
+            )
+        nodes = np.arange(n_nodes)
+    nodes = np.asarray(nodes)
+    if nodes.ndim != 1 or not np.all(nodes == np.round(nodes)):
+        raise v.err(f"{key}: node indices must be integers")
+    nodes = nodes.astype(np.int64)
+    if pos.shape != (nodes.size, dim) or nodes.min() < 0 or nodes.max() >= n_nodes:
+        raise v.err(
+            f"{key}: {nodes.size} node indices in [0, {n_nodes}) with positions "
+            f"({nodes.size}, {dim}) expected, got {pos.shape}"
+        )
+    if not np.isfinite(pos).all():
+        raise v.err(f"{key}: positions must be finite")
+    return pos, nodes
+
+
+def _case_scenes(scene: Scene) -> list[Scene]:
+    base = scene.to_dict()
+    base.pop("fit")
+    out = []
+    for c in [{"set": {}}] + list(scene["fit"]["case"]):
+        out.append(load_scene(base, overrides=dict(c["set"]), base_dir=scene.base_dir))
+    return out
+
+
+def _log(progress: bool, msg: str) -> None:
+    if progress:
+        print(f"[jaxelastic fit] {msg}", file=sys.stderr, flush=True)
+
+
+def _figure(hist_loss, hist_p, fields, truth, title):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 3.2))
+    ax = fig.subplots(1, 3)
+    it = np.arange(len(hist_loss))
+    ax[0].semilogy(it, np.maximum(hist_loss, 1e-300), "o-", ms=3)
+    ax[0].set(xlabel="iteration", ylabel="loss", title="loss")
+    for j, (name, lab) in enumerate((("E", "E [Pa]"), ("nu", "ν"))):
+        ax[j + 1].plot(it, hist_p[:, j], "o-", ms=3, label="fit")
+        if truth is not None:
+            ax[j + 1].axhline(truth[name], color="k", ls="--", lw=0.8, label="true")
+        fitted = "fitted" if name in fields else "held fixed"
+        ax[j + 1].set(xlabel="iteration", ylabel=lab, title=f"{lab.split()[0]} ({fitted})")
+        ax[j + 1].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+# ----------------------------------------------------------------------------------------
+# run
+# ----------------------------------------------------------------------------------------
+
+
+def run_fit(scene, out_dir, progress: bool = True) -> dict:
+    """Fit (E, ν) as the scene's ``[fit]`` section says; write the outputs into ``out_dir``.
+
+    Writes (atomically) ``summary.json`` (scene, cases, target, initial guess, fitted
+    values and their relative errors when the truth is known, stop reason, loss /
+    parameter / gradient-norm / Newton histories, timings), ``fit.png`` and
+    ``observed.npz`` (``nodes``, and ``positions_<i>`` per case: a file target for reruns).
+
+    Raises:
+        SceneError: invalid scene, no ``[fit]`` section, bad observation files.
+        SolveError / GradientError: the target solve or a fit solve failed (the summary is
+            still written with ``"status": "failed"``).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from . import _scene_run as sr
+    from .fitting import GradientError, LoadCase, Material, add_noise, fit
+    from .solvers.newton import SolveError
+
+    t_start = time.perf_counter()
+    scene = load_scene(scene)
+    if scene.get("fit") is None:
+        raise SceneError(f"scene {scene.label!r} has no [fit] section")
+    cfg = scene["fit"]
+    v = _V(scene.label)
+    out = sr._prepare_out(out_dir, scene)
+    for name in _OUTPUTS[1:]:
+        p = os.path.join(out, name)
+        if scene.source and os.path.abspath(scene.source) == p:
+            raise SceneError(f"refusing to overwrite the input {p!r}; choose another --out")
+    summary: dict[str, Any] = dict(
+        scene=scene.to_dict(), scene_file=scene.source, status="running", timings={}
+    )
+    summary_path = os.path.join(out, "summary.json")
+    try:
+        t0 = time.perf_counter()
+        scenes = _case_scenes(scene)
+        builts = [sr.build(s) for s in scenes]
+        b0 = builts[0]
+        mesh, dim = b0.mesh, b0.mesh.dim
+        plane = scene["material"].get("plane", "strain")
+        summary["mesh"] = dict(
+            dim=dim, n_nodes=mesh.n_nodes, n_cells=mesh.n_cells, element=mesh.element
+        )
+        summary["timings"]["build"] = time.perf_counter() - t0
+
+        # observations: synthetic (optionally on a refined mesh) or from files
+        t0 = time.perf_counter()
+        truth = None
+        observed, avail = [], None
+        if "target" in cfg:
+            truth = dict(cfg["target"])
+            r = int(truth.get("refine", 1))
+            from .materials import Lame, lame
+
+            _log(
+                progress,
+                f"synthetic target at E = {truth['E']:g}, nu = {truth['nu']:g}"
+                + (f" on a {r}x refined mesh" if r > 1 else ""),
+            )
+            for s in scenes:
+                if r > 1:
+                    n = s["mesh"]["n"]
+                    n = [k * r for k in n] if isinstance(n, (list, tuple)) else n * r
+                    s = load_scene(s, overrides={"mesh.n": n})
+                bt = sr.build(s)
+                p = Lame(*lame(truth["E"], truth["nu"], dim=dim, plane=plane))
+                bt = bt._replace(params=p, potential=bt.potential.replace(params=p))
+                x, _, _ = sr._static_solve(bt, progress, what="target solve")
+                idx = (
+                    np.arange(mesh.n_nodes) if r == 1 else nested_nodes(bt.mesh.points, mesh.points)
+                )
+                observed.append(np.asarray(x)[idx])
+            avail = np.arange(mesh.n_nodes)
+            sources = ["synthetic"] * len(scenes)
+        else:
+            files = [cfg["observed"]] + [c["observed"] for c in cfg["case"]]
+            keys = ["[fit].observed"] + [f"[fit.case][{i}].observed" for i in range(len(files) - 1)]
+            sources = [os.path.join(scene.base_dir, f) for f in files]
+            node_sets = []
+            for key, path in zip(keys, sources, strict=True):
+                pos, nodes = _read_observed(v, key, path, mesh.n_nodes, dim)
+                full = np.full((mesh.n_nodes, dim), np.nan)
+                full[nodes] = pos
+                observed.append(full)
+                node_sets.append(nodes)
+            avail = node_sets[0]
+            for ns in node_sets[1:]:
+                avail = np.intersect1d(avail, ns)
+        markers = choose_markers(b0.bc.mask, cfg["markers"], cfg["seed"], avail)
+        if markers.size == 0:
+            raise v.err("[fit]: no observed node is free (all observed nodes are clamped)")
+        X = np.asarray(mesh.points)
+        cases, obs_arrays = [], {}
+        for i, (b, xo) in enumerate(zip(builts, observed, strict=True)):
+            xo_m = jnp.asarray(xo[markers])
+            if cfg["noise"] > 0:
+                key = jax.random.fold_in(jax.random.PRNGKey(cfg["seed"]), i)
+                xo_m = add_noise(xo_m, jnp.asarray(X[markers]), cfg["noise"], key)
+            obs_arrays[f"positions_{i}"] = np.asarray(xo_m)
+            weight = 1.0 if i == 0 else cfg["case"][i - 1]["weight"]
+            nodes = None if markers.size == mesh.n_nodes else jnp.asarray(markers)
+            cases.append(
+                LoadCase(
+                    pot=b.potential,
+                    bc=b.bc,
+                    observed=xo_m,
+                    nodes=nodes,
+                    weight=weight,
+                    linear=b.linear,
+                )
+            )
+        summary["timings"]["target"] = time.perf_counter() - t0
+        summary["cases"] = [
+            dict(overrides=dict(c["set"]), weight=c.get("weight", 1.0), observed=src)
+            for c, src in zip([{"set": {}}] + list(cfg["case"]), sources, strict=True)
+        ]
+        summary["observations"] = dict(
+            n_markers=int(markers.size),
+            fraction_of_nodes=markers.size / mesh.n_nodes,
+            noise=cfg["noise"],
+            seed=cfg["seed"],
+        )
+        summary["target"] = truth
+        summary["initial"] = dict(cfg["initial"])
+
+        # the fit
+        _log(
+            progress,
+            f"fitting {', '.join(cfg['fields'])} on {len(cases)} load case(s), "
+            f"{markers.size} observed nodes (the first iterations include compilation) ...",
+        )
+        t0 = time.perf_counter()
+        settings = b0.settings._replace(rtol=min(b0.settings.rtol, 1e-10))
+        res = fit(
+            cases,
+            Material(E=cfg["initial"]["E"], nu=cfg["initial"]["nu"]),
+            fields=tuple(cfg["fields"]),
+            plane=plane,
+            optimizer=cfg["optimizer"],
+            learning_rate=cfg["learning_rate"],
+            max_iter=cfg["max_iter"],
+            gtol=cfg["gtol"],
+            settings=settings,
+            progress=progress,
+        )
+        summary["timings"]["fit_incl_compile"] = time.perf_counter() - t0
+        result = dict(
+            E=float(res.E),
+            nu=float(res.nu),
+            loss=float(res.loss),
+            converged=bool(res.converged),
+            stop_reason=res.stop_reason,
+            iterations=int(res.iterations),
+        )
+        if truth is not None:
+            result["E_rel_error"] = abs(result["E"] - truth["E"]) / truth["E"]
+            result["nu_rel_error"] = abs(result["nu"] - truth["nu"]) / abs(truth["nu"])
+        summary["result"] = result
+        P = np.asarray(res.param_history)
+        summary["history"] = dict(
+            loss=res.loss_history,
+            E=P[:, 0],
+            nu=P[:, 1],
+            grad_norm=res.grad_norm_history,
+            newton_steps=res.newton_steps,
+            linear_iterations=res.linear_iterations,
+        )
+
+        t0 = time.perf_counter()
+        png = os.path.join(out, "fit.png")
+        fig = _figure(res.loss_history, P, cfg["fields"], truth, f"{scene.name}: fit of (E, ν)")
+        sr._save_png(fig, png)
+        npz = os.path.join(out, "observed.npz")
+        _write_atomic(npz, lambda tmp: _savez(tmp, nodes=markers, **obs_arrays))
+        summary["outputs"] = dict(directory=out, summary=summary_path, png=[png], observed=npz)
+        summary["timings"]["outputs"] = time.perf_counter() - t0
+    except (SolveError, GradientError) as e:
+        summary["status"] = "failed"
+        summary["error"] = f"{type(e).__name__}: {e}"
+        summary["timings"]["total"] = time.perf_counter() - t_start
+        sr._write_json(summary_path, summary)
+        raise
+    summary["status"] = "ok"
+    summary["timings"]["total"] = time.perf_counter() - t_start
+    sr._write_json(summary_path, summary)
+    return sr._jsonable(summary)
+
+
+def _savez(tmp: str, **arrays) -> None:
+    with open(tmp, "wb") as f:  # a file object: np.savez would append ".npz" to a name
+        np.savez(f, **arrays)
+
+
+def highlights(s: dict) -> str:
+    """A few lines summarising a fit summary (for the command line)."""
+    r = s["result"]
+    lines = [
+        f"fit of scene {s['scene']['name']!r}: {s['status']} ({r['stop_reason']}, "
+        f"{r['iterations']} iterations, loss {r['loss']:.3e})"
+    ]
+    t = s.get("target")
+    for k, name in (("E", "E "), ("nu", "nu")):
+        err = f"  (true {t[k]:.6g}, rel. error {r[k + '_rel_error']:.2e})" if t else ""
+        lines.append(f"  {name} = {r[k]:.6g}{err}")
+    o = s["observations"]
+    lines.append(
+        f"  {len(s['cases'])} load case(s), {o['n_markers']} observed nodes "
+        f"({100 * o['fraction_of_nodes']:.1f} %), noise {o['noise']:g}"
+    )
+    lines.append(f"  total {s['timings']['total']:.1f} s; outputs in {s['outputs']['directory']}")
+    return "\n".join(lines)
