@@ -1,7 +1,8 @@
 """Mesh files in and out: meshio reading with named sets, VTU output, ParaView time series.
 
 * :func:`read_mesh` reads any meshio-readable file (Gmsh ``.msh`` v2/v4 ascii/binary, VTU,
-  XDMF, Abaqus ``.inp``, …) holding linear triangles (2D) or tetrahedra (3D) and returns a
+  XDMF, Abaqus ``.inp``, …) holding linear or quadratic triangles (2D: ``triangle``,
+  ``triangle6``) or tetrahedra (3D: ``tetra``, ``tetra10``) and returns a
   :class:`MeshData`: the validated :class:`~jaxelastic.mesh.Mesh` plus named point, cell and
   boundary-facet sets taken from Gmsh physical groups and meshio point/cell sets.
 * :func:`write_vtu` writes one state (rest geometry + ``displacement``, optionally J,
@@ -36,8 +37,9 @@ from .mesh import Mesh, MeshError, boundary_facets, from_arrays
 
 __all__ = ["MeshIOError", "MeshData", "read_mesh", "write_vtu", "cell_fields", "TimeSeriesWriter"]
 
-_VOLUME = {2: "triangle", 3: "tetra"}  # volume cell type per dimension
-_FACET = {2: "line", 3: "triangle"}  # boundary facet type per dimension
+# volume cell types per dimension, with the matching boundary facet type
+_VOLUME = {2: ("triangle", "triangle6"), 3: ("tetra", "tetra10")}
+_FACET = {"triangle": "line", "triangle6": "line3", "tetra": "triangle", "tetra10": "triangle6"}
 
 
 class MeshIOError(MeshError):
@@ -127,7 +129,8 @@ def _tagged_groups(raw):
 
 
 def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> MeshData:
-    """Read a triangle (2D) or tetrahedron (3D) mesh file with its named sets.
+    """Read a triangle (2D) or tetrahedron (3D) mesh file, linear or quadratic, with its
+    named sets.
 
     Args:
         path: the mesh file; the format is deduced from the extension unless
@@ -138,13 +141,14 @@ def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> M
     Returns:
         A :class:`MeshData`. Volume cells of all blocks are concatenated in file order.
         Lower-dimensional cells carrying a physical group or cell set become facet sets
-        (lines in 2D, triangles in 3D) or point sets (vertices; lines in 3D); untagged ones
+        (lines in 2D, triangles in 3D, of the matching order: ``line3``/``triangle6`` for
+        quadratic meshes) or point sets (vertices; lines in 3D); untagged ones
         are ignored. Unnamed Gmsh physical groups are named by their tag (``"7"``). Points
         stored with 3 coordinates and constant z make a 2D mesh.
 
     Raises:
         MeshIOError: missing/unreadable file, unknown extension, no or unsupported volume
-            cells (quad, hex, triangle6, mixed types), a triangle mesh that is not planar,
+            cells (quad, hex, mixed types), a triangle mesh that is not planar,
             or invalid geometry (the :class:`~jaxelastic.mesh.MeshError` message, prefixed
             with the path).
     """
@@ -156,11 +160,13 @@ def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> M
     vol_types = sorted(t for t, d in dims.items() if d == vol_dim)
     if vol_dim < 2:
         raise MeshIOError(f"{path}: no triangle or tetra cells (cell types found: {sorted(dims)})")
-    if vol_types != [_VOLUME[vol_dim]]:
+    if len(vol_types) != 1 or vol_types[0] not in _VOLUME.get(vol_dim, ()):
         raise MeshIOError(
             f"{path}: unsupported volume cell types {vol_types}; jaxelastic reads meshes of "
-            "linear triangles (2D) or linear tetrahedra (3D) only, one type per mesh"
+            "triangles (2D: triangle, triangle6) or tetrahedra (3D: tetra, tetra10), one "
+            "type per mesh"
         )
+    vol_type = vol_types[0]
     vol = [i for i, b in enumerate(blocks) if b.dim == vol_dim]
     offset = dict(zip(vol, np.cumsum([0] + [len(blocks[i].data) for i in vol]), strict=False))
     cells = np.concatenate([np.asarray(blocks[i].data, dtype=np.int64) for i in vol])
@@ -180,7 +186,7 @@ def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> M
             )
         points = points[:, :2]
     try:
-        mesh = from_arrays(points, new[cells], _VOLUME[vol_dim], orient=orient)
+        mesh = from_arrays(points, new[cells], vol_type, orient=orient)
     except MeshError as e:
         raise MeshIOError(f"{path}: {e}") from None
 
@@ -191,7 +197,7 @@ def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> M
             acc["cell"].setdefault(name, []).append(offset[i] + local)
             continue
         conn = new[np.asarray(b.data, dtype=np.int64)[local]]
-        if b.type == _FACET[vol_dim]:
+        if b.type == _FACET[vol_type]:
             acc["facet"].setdefault(name, []).append(conn[(conn >= 0).all(axis=1)])
         elif b.dim == 0 or (vol_dim == 3 and b.dim == 1):
             acc["point"].setdefault(name, []).append(conn.ravel()[conn.ravel() >= 0])
@@ -223,26 +229,32 @@ def _orient_facets(facets: np.ndarray, boundary: np.ndarray) -> np.ndarray:
 
 @functools.partial(jax.jit, static_argnums=0)
 def _cell_fields(psi, x, mesh, params):
-    F = deformation_gradients(x, mesh)[:, 0]  # (c, d, d) at the first quadrature point
-    c, d = F.shape[:2]
+    F = deformation_gradients(x, mesh)  # (c, q, d, d); F̄ under the F-bar formulation
+    c, q, d = F.shape[:3]
     ax = cell_params_axes(params, mesh.n_cells)
-    P = jax.vmap(first_piola(psi), in_axes=(0, ax))(F, params)  # (c, d, d)
-    W = jax.vmap(psi, in_axes=(0, ax))(F, params)
-    J = jax.vmap(det)(F)
-    sigma = P @ jnp.swapaxes(F, 1, 2) / J[:, None, None]  # Cauchy σ = P Fᵀ / J
-    s3 = jnp.zeros((c, 3, 3), F.dtype).at[:, :d, :d].set(sigma)  # 2D: σ_zz = 0
-    dev = s3 - jnp.trace(s3, axis1=1, axis2=2)[:, None, None] / 3.0 * jnp.eye(3)[None]
+    P = jax.vmap(jax.vmap(first_piola(psi), in_axes=(0, None)), in_axes=(0, ax))(F, params)
+    W = jax.vmap(jax.vmap(psi, in_axes=(0, None)), in_axes=(0, ax))(F, params)  # (c, q)
+    J = jax.vmap(jax.vmap(det))(F)
+    sigma = P @ jnp.swapaxes(F, -1, -2) / J[..., None, None]  # Cauchy σ = P Fᵀ / J
+    s3 = jnp.zeros((c, q, 3, 3), F.dtype).at[..., :d, :d].set(sigma)  # 2D: σ_zz = 0
+    dev = s3 - jnp.trace(s3, axis1=-2, axis2=-1)[..., None, None] / 3.0 * jnp.eye(3)[None, None]
+    wn = mesh.weights / jnp.sum(mesh.weights, axis=1, keepdims=True)  # (c, q)
+
+    def avg(a):  # weighted average over the quadrature points
+        return jnp.einsum("cq,cq...->c...", wn, a)
+
     return {
-        "J": J,
-        "green_strain": jax.vmap(green_strain)(F).reshape(c, d * d),
-        "stress_P": P.reshape(c, d * d),
-        "von_mises": jnp.sqrt(1.5 * jnp.sum(dev * dev, axis=(1, 2))),
-        "energy_density": W,
+        "J": avg(J),
+        "green_strain": avg(jax.vmap(jax.vmap(green_strain))(F)).reshape(c, d * d),
+        "stress_P": avg(P).reshape(c, d * d),
+        "von_mises": avg(jnp.sqrt(1.5 * jnp.sum(dev * dev, axis=(-2, -1)))),
+        "energy_density": avg(W),
     }
 
 
 def cell_fields(psi, x, mesh: Mesh, params) -> dict[str, np.ndarray]:
-    """Per-cell output fields at the first quadrature point (jitted; mesh is an argument).
+    """Per-cell output fields, averaged over the cell's quadrature points with their weights
+    (the one value for P1; of F̄ under F-bar), jitted, mesh passed as an argument.
 
     Args:
         psi: strain-energy density ``psi(F, params)`` [energy / rest measure].

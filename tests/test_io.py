@@ -263,13 +263,16 @@ def test_clockwise_triangles_reoriented_or_refused(tmp_path):
     [
         ([("triangle", [[0, 1, 2]]), ("quad", [[0, 1, 3, 2]])], ["quad", "triangle"]),
         ([("quad", [[0, 1, 3, 2]])], ["quad"]),
-        ([("triangle6", [[0, 1, 2, 3, 4, 5]])], ["triangle6"]),
+        (
+            [("triangle", [[0, 1, 2]]), ("triangle6", [[0, 1, 2, 3, 4, 5]])],
+            ["triangle", "triangle6"],
+        ),
         (
             [("tetra", [[0, 1, 2, 6]]), ("hexahedron", [[0, 1, 3, 2, 6, 7, 5, 4]])],
             ["hexahedron", "tetra"],
         ),
     ],
-    ids=["tri+quad", "quad", "triangle6", "tet+hex"],
+    ids=["tri+quad", "quad", "tri+triangle6", "tet+hex"],
 )
 def test_unsupported_or_mixed_cells_refused(tmp_path, cells, names):
     pts = np.array(
