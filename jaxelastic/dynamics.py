@@ -41,6 +41,7 @@ __all__ = [
     "State",
     "init_state",
     "step",
+    "advance",
     "rollout",
     "simulate",
     "kinetic_energy",
@@ -143,6 +144,27 @@ def step(
         ``(new_state, newton_result)``; on failure the state is not advanced (the status
         says why).
     """
+
+    def solve(pot, x0, bc):
+        return newton(pot, x0, bc, settings, linear)
+
+    return advance(base, state, bc, integ, solve)
+
+
+def advance(
+    base: Potential,
+    state: State,
+    bc: Dirichlet,
+    integ: Integrator,
+    solve: Callable[[Potential, jax.Array, Dirichlet], NewtonResult],
+) -> tuple[State, NewtonResult]:
+    """One time step with a given equilibrium solver (the body of :func:`step`).
+
+    Args:
+        solve: ``(pot, x_start, bc) ↦ NewtonResult`` minimising the step potential (e.g.
+            :func:`~jaxelastic.solvers.newton.newton`, or the differentiable
+            :func:`~jaxelastic.implicit.equilibrium_result`).
+    """
     if base.mass is None:
         raise ValueError("dynamics needs lumped masses: Potential(mass=lumped_mass(...))")
     bdf2_now = state.n > 0
@@ -153,7 +175,7 @@ def step(
     e_n = potential_value(pot, state.x)
     use_tilde = jnp.isfinite(e_tilde) & ~(e_tilde > e_n)
     x_start = jnp.where(use_tilde, pot.x_tilde, state.x)
-    res = newton(pot, x_start, bc, settings, linear)
+    res = solve(pot, x_start, bc)
     x_new = res.x
     h = integ.h
     if integ.method == "bdf2":
