@@ -1,0 +1,144 @@
+"""Helpers shared by ``report_accuracy.py`` and ``report_stability.py`` (not a library module).
+
+Atomic output files, the machine description stamped on every plot, Pareto fronts, and the
+element variants (P1, P2, F-bar) with a clear message when the installed library does not
+offer them yet.
+"""
+
+from __future__ import annotations
+
+import csv
+import inspect
+import io
+import json
+import math
+import os
+import platform
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+# element variant -> keyword arguments of the mesh generators (rectangle, box, cook_membrane)
+ELEMENT_KW = {
+    "P1": {},
+    "P2": dict(order=2),
+    "P2-Fbar": dict(order=2, formulation="fbar"),
+    "P1-Fbar": dict(order=1, formulation="fbar"),
+}
+ELEMENT_NOTES = {
+    "P1": "linear triangles/tets (tri3/tet4)",
+    "P2": "quadratic triangles/tets (tri6/tet10)",
+    "P2-Fbar": "quadratic with F-bar (cell-averaged J)",
+    "P1-Fbar": "composite P1 (4/8 sub-simplices per P2 cell) with F-bar",
+}
+
+
+class Unavailable(RuntimeError):
+    """An element variant or feature the installed jaxelastic does not offer (yet)."""
+
+
+def element_support() -> tuple[bool, str]:
+    """Whether the mesh generators take ``order=`` and ``formulation=`` (issue 6)."""
+    from jaxelastic import mesh
+
+    params = inspect.signature(mesh.box).parameters
+    if "order" in params and "formulation" in params:
+        return True, ""
+    return False, "P2/F-bar elements are not available in this jaxelastic (no order= keyword)"
+
+
+def make_mesh(generator, *args, element: str = "P1", **kw):
+    """``generator(*args, **kw)`` for the element variant; raises :class:`Unavailable`."""
+    if element not in ELEMENT_KW:
+        raise ValueError(f"element must be one of {sorted(ELEMENT_KW)}, got {element!r}")
+    if element != "P1":
+        ok, why = element_support()
+        if not ok:
+            raise Unavailable(why)
+    try:
+        return generator(*args, **ELEMENT_KW[element], **kw)
+    except (TypeError, NotImplementedError, ValueError) as e:
+        if element == "P1":
+            raise
+        raise Unavailable(f"{element}: {e}") from e
+
+
+def machine() -> str:
+    """One line naming the machine (cores, CPU, OS, jax) for plots and JSON."""
+    import jax
+
+    cpu = platform.processor() or platform.machine()
+    return (
+        f"{os.cpu_count()} cores ({cpu}), {platform.system()}, jax {jax.__version__}, "
+        f"{jax.default_backend()}, float64"
+    )
+
+
+def atomic_write(path: Path, data: str | bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file and ``os.replace``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    with os.fdopen(fd, "wb") as f:
+        f.write(data.encode() if isinstance(data, str) else data)
+    os.replace(tmp, path)
+
+
+def _clean(v):
+    if isinstance(v, dict):
+        return {k: _clean(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_clean(x) for x in v]
+    if isinstance(v, (np.floating, float)):
+        return None if not math.isfinite(float(v)) else float(v)
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.bool_):
+        return bool(v)
+    return v
+
+
+def write_json(path: Path, obj) -> None:
+    atomic_write(path, json.dumps(_clean(obj), indent=1))
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k, v in r.items() if k not in keys and not isinstance(v, (dict, list))]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=keys, extrasaction="ignore")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: r.get(k, "") for k in keys})
+    atomic_write(path, buf.getvalue())
+
+
+def save_figure(fig, path: Path, dpi: int = 110) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    atomic_write(path, buf.getvalue())
+
+
+def pareto(times, errors) -> np.ndarray:
+    """Indices of the non-dominated points (no other point is both faster and more
+    accurate), sorted by time."""
+    t, e = np.asarray(times, float), np.asarray(errors, float)
+    ok = np.flatnonzero(np.isfinite(t) & np.isfinite(e) & (e > 0))
+    idx = ok[np.lexsort((e[ok], t[ok]))]
+    front, best = [], np.inf
+    for i in idx:
+        if e[i] < best:
+            front.append(i)
+            best = e[i]
+    return np.asarray(front, dtype=int)
+
+
+def rate(h, err) -> float:
+    """Least-squares slope of log(err) against log(h) (NaN with fewer than 2 points)."""
+    h, err = np.asarray(h, float), np.asarray(err, float)
+    ok = np.isfinite(h) & np.isfinite(err) & (err > 0) & (h > 0)
+    if ok.sum() < 2:
+        return float("nan")
+    return float(np.polyfit(np.log(h[ok]), np.log(err[ok]), 1)[0])

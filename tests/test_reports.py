@@ -1,0 +1,303 @@
+"""The accuracy and stability reports (``scripts/report_*.py``) on small settings: they
+write their files, and their numbers are the physics the README promises.
+
+The default run keeps to a few compilations (Cook P1 with a direct solver, the patch
+tests, a handful of stability scenes); convergence rates, P2/F-bar, twist and the full
+stability table are ``slow``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+sys.path.insert(0, str(SCRIPTS))
+acc = importlib.import_module("report_accuracy")
+stab = importlib.import_module("report_stability")
+rc = importlib.import_module("_report_common")
+
+P2_OK = rc.element_support()[0]
+needs_p2 = pytest.mark.skipif(not P2_OK, reason="P2/F-bar elements not available")
+
+
+def _rows(result, case, element="P1", solver=None):
+    rs = [r for r in result["rows"] if r["case"] == case and r["element"] == element]
+    if solver is not None:
+        rs = [r for r in rs if r["solver"] == solver]
+    assert rs, (case, element, solver)
+    assert all(r["status"] == "SUCCESS" for r in rs), [(r["level"], r["status"]) for r in rs]
+    return sorted(rs, key=lambda r: r["h"], reverse=True)
+
+
+# --------------------------------------------------------------------------------------
+# helpers that the reports rely on
+# --------------------------------------------------------------------------------------
+
+
+def test_pareto_front_and_rate():
+    t = [1.0, 2.0, 3.0, 0.5, 4.0]
+    e = [1e-2, 1e-3, 5e-3, 1e-1, 1e-4]
+    # (3, 5e-3) is dominated by (2, 1e-3)
+    assert list(rc.pareto(t, e)) == [3, 0, 1, 4]
+    h = np.array([1.0, 0.5, 0.25])
+    assert rc.rate(h, 3 * h**2) == pytest.approx(2.0, abs=1e-12)
+
+
+def test_timoshenko_exact_field_and_error_norms():
+    """The exact field's gradient matches finite differences; its tip value is the
+    REFERENCES value 0.0089; the error norm of the interpolant is small and that of a
+    scaled field is the scaling."""
+    X = np.array([[10.0, 2.0], [30.0, -4.0], [48.0, 0.0]])
+    u, g = acc.timoshenko_exact(X)
+    eps = 1e-6
+    for j in range(2):
+        dX = np.zeros_like(X)
+        dX[:, j] = eps
+        fd = (acc.timoshenko_exact(X + dX)[0] - acc.timoshenko_exact(X - dX)[0]) / (2 * eps)
+        np.testing.assert_allclose(g[:, :, j], fd, rtol=1e-7, atol=1e-14)
+    assert u[2, 1] == pytest.approx(0.0089, rel=2e-3)
+    import jaxelastic as je
+
+    m = je.rectangle(16, 4, (48.0, 12.0), (0.0, -6.0))
+    X = np.asarray(m.points)
+    ue = acc.timoshenko_exact(X)[0]
+    mu, lam = je.lame(3e7, 0.3, dim=2, plane="stress")
+    exact = (lambda Z: acc.timoshenko_exact(Z)[0], lambda Z: acc.timoshenko_exact(Z)[1])
+    l2, en = acc.error_norms_2d(m, X + 0.5 * ue, *exact, mu, lam)
+    # half the interpolant: errors near 1/2 (plus the interpolation error)
+    assert 0.45 < l2 < 0.55 and 0.45 < en < 0.6
+    l2i, eni = acc.error_norms_2d(m, X + ue, *exact, mu, lam)
+    assert l2i < 0.05 and eni < 0.3
+
+
+def test_edge_load_is_consistent():
+    """The parabolic end shear integrates to P and, on P1 edges, matches ∫N_a t exactly
+    for a quadratic t (5-point Gauss)."""
+    import jaxelastic as je
+    from jaxelastic import loads
+
+    m = je.rectangle(4, 3, (48.0, 12.0), (0.0, -6.0))
+    facets = loads.facets_where(m, lambda X: np.abs(X[:, 0] - 48.0) < 1e-9)
+    I = 12.0**3 / 12
+
+    def t(X):
+        return np.stack([0 * X[:, 1], 1000.0 / (2 * I) * (36.0 - X[:, 1] ** 2)], 1)
+
+    f = acc._edge_load_2d(m, facets, t)
+    assert f[:, 1].sum() == pytest.approx(1000.0, rel=1e-12)
+    assert np.abs(f[:, 0]).max() == 0.0
+    # top and bottom corner nodes: ∫ over the one edge of N t, by hand for t(y) quadratic
+    y = np.linspace(-6, 6, 4)
+    a, b = y[0], y[1]
+    s = np.linspace(0, 1, 200001)
+    tt = 1000.0 / (2 * I) * (36.0 - (a + s * (b - a)) ** 2)
+    corner = np.trapezoid((1 - s) * tt, s) * (b - a)
+    i = acc._node_at(m, (48.0, -6.0))
+    assert f[i, 1] == pytest.approx(corner, rel=1e-8)
+
+
+def test_twist_setup_matches_bench_solvers():
+    import bench_solvers
+
+    import jaxelastic as je
+    from jaxelastic import loads
+
+    _, _, bc1 = bench_solvers._twist_problem(3)
+    m = je.box(3, 3, 3)
+    bc = loads.combine(
+        loads.fix(m, loads.nodes_on_plane(m, 0, 1.0)),
+        loads.fix(m, loads.nodes_on_plane(m, 0, 0.0), displacement=acc.twist_u),
+    )
+    np.testing.assert_array_equal(np.asarray(bc.mask), np.asarray(bc1.mask))
+    np.testing.assert_allclose(np.asarray(bc.values), np.asarray(bc1.values), atol=1e-15)
+
+
+# --------------------------------------------------------------------------------------
+# accuracy report, default run
+# --------------------------------------------------------------------------------------
+
+
+def test_accuracy_quick_cook_and_patch(tmp_path):
+    res = acc.run(
+        tmp_path,
+        quick=True,
+        case_names=["cook", "patch"],
+        elements=["P1"],
+        solvers=["direct"],
+        verbose=False,
+    )
+    cook = _rows(res, "cook")
+    err = [r["error"] for r in cook]
+    # monotone convergence towards 23.96 from below; the finest quick level (n = 64) is
+    # within 1 % (measured 0.78 %; n = 32 gives 23.28, 2.9 % off)
+    assert all(r["value"] < 23.96 for r in cook)
+    assert all(a > b for a, b in zip(err, err[1:], strict=False))
+    assert cook[-1]["level"] == 64 and err[-1] < 0.01
+    assert err[-2] > 0.01  # the coarser level does not: the test would notice a shortcut
+    for r in cook:
+        assert r["newton"] <= 2 and r["run_s"] > 0 and r["compile_s"] >= 0
+    (patch,) = _rows(res, "patch")
+    assert patch["error"] < 1e-9  # σx = σy = 1333.3, τ = 400 in every element
+    for name in (
+        "accuracy.json",
+        "accuracy.csv",
+        "error_vs_time_cook.png",
+        "error_vs_time_summary.png",
+    ):
+        assert (tmp_path / name).stat().st_size > 100, name
+    on_disk = json.loads((tmp_path / "accuracy.json").read_text())
+    assert len(on_disk["rows"]) == len(res["rows"]) and "cores" in on_disk["machine"]
+    csv_lines = (tmp_path / "accuracy.csv").read_text().splitlines()
+    assert len(csv_lines) == 1 + len(res["rows"])
+
+
+# --------------------------------------------------------------------------------------
+# stability report, default run
+# --------------------------------------------------------------------------------------
+
+
+def test_stability_quick_subset(tmp_path):
+    res = stab.run(
+        tmp_path,
+        quick=True,
+        scenes=["relax"],
+        models=("stable_neo_hookean_log", "neo_hookean", "stvk"),
+        starts=("crush", "reflect"),
+        verbose=False,
+    )
+    out = {(r["scene"], r["material"]): r for r in res["rows"]}
+    assert res["silent_nans"] == 0
+    assert out["crush", "stable_neo_hookean_log"]["outcome"] == "recovered"
+    assert out["crush", "neo_hookean"]["outcome"] == "recovered"  # J = 1e-6 > 0: a barrier
+    r = out["reflect", "neo_hookean"]
+    assert r["outcome"] == "refused" and r["reason"].startswith("INVERTED")
+    assert r["steps"] == 1 and r["newton_max"] == 0
+    r = out["reflect", "stvk"]
+    assert r["outcome"] == "at rest, not recovered" and "mirror image" in r["reason"]
+    assert r["volume_error"] == pytest.approx(-2.0, abs=1e-9)  # every J = −1
+    for key in [("crush", "stable_neo_hookean_log"), ("crush", "neo_hookean")]:
+        assert out[key]["energy_monotone"] is True  # backward Euler dissipates
+        assert abs(out[key]["volume_error"]) < 1e-6
+    assert (tmp_path / "stability_shapes.png").stat().st_size > 1000
+    assert len((tmp_path / "stability.csv").read_text().splitlines()) == 1 + len(res["rows"])
+
+
+# --------------------------------------------------------------------------------------
+# slow: rates, 3D locking, P2 / F-bar, twist, the full quick stability table
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_timoshenko_rates_p1(tmp_path):
+    res = acc.run(
+        tmp_path, quick=True, case_names=["timoshenko"], elements=["P1"], verbose=False, plots=False
+    )
+    rs = _rows(res, "timoshenko")
+    h = [r["h"] for r in rs]
+    assert rc.rate(h[-2:], [r["error_L2"] for r in rs][-2:]) == pytest.approx(2.0, abs=0.2)
+    assert rc.rate(h[-2:], [r["error_energy"] for r in rs][-2:]) == pytest.approx(1.0, abs=0.2)
+
+
+@pytest.mark.slow
+@needs_p2
+def test_timoshenko_rates_p2(tmp_path):
+    res = acc.run(
+        tmp_path, quick=True, case_names=["timoshenko"], elements=["P2"], verbose=False, plots=False
+    )
+    rs = _rows(res, "timoshenko", "P2")
+    h = [r["h"] for r in rs]
+    assert rc.rate(h[-2:], [r["error_L2"] for r in rs][-2:]) == pytest.approx(3.0, abs=0.2)
+    assert rc.rate(h[-2:], [r["error_energy"] for r in rs][-2:]) == pytest.approx(2.0, abs=0.2)
+
+
+@pytest.mark.slow
+def test_cantilever3d_p1_locks_and_p2_does_not(tmp_path):
+    els = ["P1", "P2"] if P2_OK else ["P1"]
+    res = acc.run(
+        tmp_path, quick=True, case_names=["cantilever3d"], elements=els, verbose=False, plots=False
+    )
+    p1 = _rows(res, "cantilever3d")
+    ratio = [r["ratio"] for r in p1]
+    # shear locking: far below beam theory, improving with refinement (1, 2 elements)
+    assert ratio[0] < 0.4 and 0.45 < ratio[1] < 0.7 and ratio[1] > ratio[0]
+    if P2_OK:
+        two = [r for r in _rows(res, "cantilever3d", "P2") if r["level"] == 2][0]
+        assert 0.98 <= two["ratio"] <= 1.02
+
+
+@pytest.mark.slow
+def test_homogeneous_cases_exact(tmp_path):
+    res = acc.run(
+        tmp_path,
+        quick=True,
+        case_names=["uniaxial", "shear", "patch_affine"],
+        elements=["P1"],
+        verbose=False,
+        plots=False,
+    )
+    for case in ("uniaxial", "shear", "patch_affine"):
+        for r in _rows(res, case):
+            assert r["error"] < 1e-9, (case, r["level"], r["error"])
+
+
+@pytest.mark.slow
+@needs_p2
+def test_nearly_incompressible_cook_p2_and_fbar(tmp_path):
+    res = acc.run(
+        tmp_path,
+        quick=True,
+        case_names=["cook_nh", "cook_incompressible"],
+        elements=["P1", "P2-Fbar"],
+        verbose=False,
+        plots=False,
+    )
+    # P1 locks: far below the reference
+    assert _rows(res, "cook_nh")[-1]["value"] < 0.6 * 6.91
+    assert _rows(res, "cook_incompressible")[-1]["value"] < 0.6 * 16.43
+    # F-bar reaches 2 % at the finest quick level
+    assert _rows(res, "cook_nh", "P2-Fbar")[-1]["error"] < 0.02
+    assert _rows(res, "cook_incompressible", "P2-Fbar")[-1]["error"] < 0.02
+
+
+@pytest.mark.slow
+def test_twist_converges_towards_reference(tmp_path):
+    res = acc.run(
+        tmp_path,
+        quick=True,
+        case_names=["twist"],
+        elements=["P1"],
+        solvers=["direct"],
+        verbose=False,
+        plots=False,
+    )
+    err = [r["error"] for r in _rows(res, "twist")]
+    assert err[-1] < err[0] < 0.2
+
+
+@pytest.mark.slow
+def test_stability_quick_full(tmp_path):
+    res = stab.run(tmp_path, quick=True, verbose=False)
+    assert res["silent_nans"] == 0
+    rows = res["rows"]
+    assert all(
+        r["outcome"] in ("recovered", "completed", "at rest, not recovered", "refused")
+        for r in rows
+    )
+    by = {(r["scene"], r["material"], r["integrator"]): r for r in rows}
+    for start in ("crush", "inflate"):
+        for m in ("stable_neo_hookean_log", "fixed_corotated"):
+            assert by[start, m, "backward_euler"]["outcome"] == "recovered", (start, m)
+    for start in ("reflect", "random"):
+        r = by[start, "neo_hookean", "backward_euler"]
+        assert r["outcome"] == "refused" and "INVERTED" in r["reason"]
+    assert by["collapse to point", "neo_hookean", "backward_euler"]["outcome"] == "refused"
+    assert by["twist 360°", "stable_neo_hookean_log", "static"]["outcome"] == "completed"
+    for r in rows:
+        if r["scene"].startswith("drop") or r["scene"].startswith("h="):
+            assert r["outcome"] == "completed", (r["scene"], r["material"], r["reason"])
