@@ -161,31 +161,19 @@ def _forward(params, cases, warms, settings, adjoint):
 
 
 @functools.cache
-def _opt_step_fn(optimizer, settings, adjoint):
-    import optax
-
-    @jax.jit
-    def step(z, state, g, value, pm, cases, warms):
-        def value_fn(zz):  # for line searches: a failed solve counts as +inf
-            loss, auxs = _total(zz, pm, cases, warms, settings, adjoint)
-            ok = jnp.all(jnp.stack([a.ok for a in auxs]))
-            return jnp.where(ok, loss, jnp.inf)
-
-        updates, state = optimizer.update(g, state, z, value=value, grad=g, value_fn=value_fn)
-        return optax.apply_updates(z, updates), state
-
-    return step
-
-
-@functools.cache
 def _named_optimizer(name: str, learning_rate: float):
     import optax
 
     if name == "lbfgs":
-        return optax.lbfgs()
+        return optax.lbfgs(linesearch=None)
     if name == "adam":
-        return optax.with_extra_args_support(optax.adam(learning_rate))
+        return optax.adam(learning_rate)
     raise ValueError(f"optimizer must be 'lbfgs', 'adam' or an optax transformation, got {name!r}")
+
+
+@functools.cache
+def _update_fn(optimizer):
+    return jax.jit(optimizer.update)
 
 
 class Objective(NamedTuple):
@@ -207,17 +195,21 @@ class Objective(NamedTuple):
     def initial_warms(self) -> tuple:
         return tuple(c.initial_warm() for c in self.cases)
 
-    def value_and_grad(self, z, warms=None):
-        """``((loss, auxs), grad)`` at z (jit-compiled once per case structure); raises
-        :class:`GradientError` if a forward solve failed or the gradient is not finite."""
+    def value_and_grad(self, z, warms=None, check: bool = True):
+        """``((loss, auxs), grad)`` at z (jit-compiled once per case structure).
+
+        With ``check`` (default), raises :class:`GradientError` if a forward solve failed
+        or the gradient is not finite; without it the caller inspects ``auxs[i].ok``.
+        """
         warms = self.initial_warms() if warms is None else tuple(warms)
         (loss, auxs), g = _value_and_grad(
             jnp.asarray(z), self.pm, self.cases, warms, self.settings, self.adjoint
         )
-        bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
-        if bad:
-            raise GradientError(f"forward solve failed in case(s) {bad}")
-        _check_finite_grads(g)
+        if check:
+            bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
+            if bad:
+                raise GradientError(f"forward solve failed in case(s) {bad}")
+            _check_finite_grads(g)
         return (loss, auxs), g
 
     def material(self, z) -> Material:
@@ -278,7 +270,7 @@ class FitResult(NamedTuple):
         param_history: ``(k + 1, 2)`` (E, ν) per iterate, or ``(k + 1, 2, n_regions)``.
         grad_norm_history: ``(k + 1,)`` gradient norm w.r.t. the unconstrained variables.
         newton_steps: ``(k + 1, n_cases)`` Newton iterations of each case's forward solve(s)
-            at each iterate (line-search trial solves are not counted).
+            per iteration (summed over its line-search trials; row 0: the initial guess).
         linear_iterations: ``(k + 1, n_cases)`` linear-solver iterations, likewise.
         solutions: final warm start (equilibrium positions) per case.
         z: final unconstrained vector.
@@ -335,8 +327,12 @@ def fit(
             (piecewise-constant fields, e.g. a two-material bar), or ``"cells"``.
         fields: which of ``"E"``, ``"nu"`` to fit; the others stay at ``init``.
         plane: 2D only, ``"strain"`` or ``"stress"``.
-        optimizer: ``"lbfgs"`` (optax L-BFGS with zoom line search), ``"adam"``
-            (``optax.adam(learning_rate)``) or an optax ``GradientTransformation``.
+        optimizer: ``"lbfgs"``: the optax L-BFGS direction (``optax.lbfgs(linesearch=None)``)
+            with a backtracking Armijo line search run on the host (every trial point is one
+            compiled value-and-gradient evaluation, reused as the next iterate, so the
+            solver is compiled once); ``"adam"`` (``optax.adam(learning_rate)``) or any
+            optax ``GradientTransformation``: updates applied as they come, halved only
+            when a forward solve fails.
         learning_rate: Adam's step in the unconstrained variables.
         max_iter: maximum optimiser iterations.
         gtol: stop (converged) when ``‖∇_z loss‖ ≤ gtol``.
@@ -352,8 +348,6 @@ def fit(
     Raises:
         GradientError: a forward solve at an accepted iterate failed.
     """
-    import optax
-
     t_start = time.perf_counter()
     obj = make_objective(
         cases,
@@ -367,15 +361,37 @@ def fit(
         settings=settings,
         adjoint=adjoint,
     )
+    line_search = optimizer == "lbfgs"
     if isinstance(optimizer, str):
         optimizer = _named_optimizer(optimizer, float(learning_rate))
-    elif not isinstance(optimizer, optax.GradientTransformationExtraArgs):
-        optimizer = optax.with_extra_args_support(optimizer)
-    opt_step = _opt_step_fn(optimizer, settings, adjoint)
+    update = _update_fn(optimizer)
     z = obj.z0
     state = optimizer.init(z)
-    warms = obj.initial_warms()
     hist = dict(loss=[], p=[], g=[], nw=[], lin=[])
+    counts = np.zeros((2, len(obj.cases)), int)  # Newton / linear iterations this iterate
+
+    def evaluate(zz, warms):
+        (f, auxs), g = obj.value_and_grad(zz, warms, check=False)
+        counts[0] += [int(a.newton_steps) for a in auxs]
+        counts[1] += [int(a.linear_iterations) for a in auxs]
+        ok = all(bool(a.ok) for a in auxs) and bool(jnp.all(jnp.isfinite(g)))
+        return float(f), auxs, g, ok and np.isfinite(float(f))
+
+    def record(zz, f, g):
+        mat = obj.material(zz)
+        hist["loss"].append(f)
+        hist["p"].append([np.asarray(mat.E), np.asarray(mat.nu)])
+        hist["g"].append(float(jnp.linalg.norm(g)))
+        hist["nw"].append(counts[0].tolist())
+        hist["lin"].append(counts[1].tolist())
+        counts[:] = 0
+
+    f, auxs, g, ok = evaluate(z, obj.initial_warms())
+    if not ok:
+        bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
+        raise GradientError(f"forward solve failed at the initial guess in case(s) {bad}")
+    warms = tuple(a.warm for a in auxs)
+    record(z, f, g)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -384,49 +400,46 @@ def fit(
     k, reason = 0, "max_iter"
     try:
         while True:
-            try:
-                (loss, auxs), g = obj.value_and_grad(z, warms)
-            except GradientError as e:
-                raise GradientError(f"at fit iterate {k}: {e}") from None
-            warms = tuple(a.warm for a in auxs)
-            mat = obj.material(z)
-            gn = float(jnp.linalg.norm(g))
-            hist["loss"].append(float(loss))
-            hist["p"].append([np.asarray(mat.E), np.asarray(mat.nu)])
-            hist["g"].append(gn)
-            hist["nw"].append([int(a.newton_steps) for a in auxs])
-            hist["lin"].append([int(a.linear_iterations) for a in auxs])
             if bar is not None:
-                bar.set_postfix(loss=f"{float(loss):.3e}", grad=f"{gn:.1e}", refresh=False)
-                if k:
-                    bar.update(1)
-            if gn <= gtol:
+                bar.set_postfix(loss=f"{f:.3e}", grad=f"{hist['g'][-1]:.1e}", refresh=False)
+            if hist["g"][-1] <= gtol:
                 reason = "gtol"
                 break
-            if float(loss) <= ftol:
+            if f <= ftol:
                 reason = "ftol"
                 break
             if k >= max_iter:
                 break
-            z_new, state = opt_step(z, state, g, loss, obj.pm, obj.cases, warms)
-            step = float(jnp.max(jnp.abs(z_new - z)))
-            if not np.all(np.isfinite(np.asarray(z_new))):
-                raise GradientError(f"optimiser produced a non-finite iterate at {k}")
-            if step == 0.0:
-                reason = "stalled"  # no progress possible (line search failed)
+            d, state = update(g, state, z)
+            slope = float(jnp.vdot(g, d))
+            if line_search and not slope < 0:  # not a descent direction: restart L-BFGS
+                state = optimizer.init(z)
+                d, state = update(g, state, z)
+                slope = float(jnp.vdot(g, d))
+            t, accepted = 1.0, None
+            for _ in range(40):  # backtracking (Armijo) / step halving on failed solves
+                zt = z + t * d
+                ft, auxs, gt, ok = evaluate(zt, warms)
+                if ok and (not line_search or ft <= f + 1e-4 * t * slope):
+                    accepted = (zt, ft, auxs, gt)
+                    break
+                if ok and line_search:  # minimiser of the quadratic through f, slope, ft
+                    tq = -slope * t * t / (2.0 * (ft - f - slope * t))
+                    t = float(np.clip(tq, 0.1 * t, 0.5 * t))
+                else:
+                    t *= 0.5
+            if accepted is None:
+                reason = "stalled"
                 break
-            z = z_new
+            step = float(t * jnp.max(jnp.abs(d)))
+            z, f, auxs, g = accepted
+            warms = tuple(a.warm for a in auxs)
             k += 1
+            record(z, f, g)
+            if bar is not None:
+                bar.update(1)
             if step <= xtol:
                 reason = "xtol"
-                (loss, auxs), g = obj.value_and_grad(z, warms)
-                warms = tuple(a.warm for a in auxs)
-                mat = obj.material(z)
-                hist["loss"].append(float(loss))
-                hist["p"].append([np.asarray(mat.E), np.asarray(mat.nu)])
-                hist["g"].append(float(jnp.linalg.norm(g)))
-                hist["nw"].append([int(a.newton_steps) for a in auxs])
-                hist["lin"].append([int(a.linear_iterations) for a in auxs])
                 break
     finally:
         if bar is not None:
@@ -510,7 +523,7 @@ def loss_hessian(
     *,
     plane: str = "strain",
     h: float = 1e-4,
-    settings: NewtonSettings = NewtonSettings(rtol=1e-12),
+    settings: NewtonSettings = FIT_SETTINGS,
     adjoint: AdjointSettings = DEFAULT_ADJOINT,
 ) -> np.ndarray:
     """Hessian of the weighted loss w.r.t. ``(ln E, ν)`` at a shared material, ``(2, 2)``.
@@ -521,23 +534,18 @@ def loss_hessian(
     inflation of ν's variance by its correlation ρ with E (Bard 1974, *Nonlinear Parameter
     Estimation*, §7-5).
     """
-    cases = tuple(cases)
-    dim = _default_mesh(cases).dim
-    warms = tuple(c.initial_warm() for c in cases)
+    obj = make_objective(cases, material, plane=plane, settings=settings, adjoint=adjoint)
 
-    def total(theta, cases, warms):
-        params = Lame(*lame(jnp.exp(theta[0]), theta[1], dim=dim, plane=plane))
-        loss = 0.0
-        for c, w in zip(cases, warms, strict=True):
-            loss = loss + c.weight * c.evaluate(params, w, settings, adjoint)[0]
-        return loss
+    def grad_theta(theta):  # gradient w.r.t. (ln E, nu) by the chain rule through z
+        s = (theta[1] + 1.0) / 1.5
+        z = jnp.asarray([theta[0] - np.log(float(material.E)), np.log(s) - np.log1p(-s)])
+        g = np.asarray(obj.value_and_grad(z)[1])
+        return np.array([g[0], g[1] / (1.5 * s * (1.0 - s))])  # db/dnu = 1 / (1.5 s (1 - s))
 
-    grad = value_and_grad(total)
-    theta = jnp.asarray([np.log(float(material.E)), float(material.nu)])
+    theta = np.array([np.log(float(material.E)), float(material.nu)])
     H = np.zeros((2, 2))
     for i in range(2):
-        e = jnp.zeros(2).at[i].set(h)
-        gp = np.asarray(grad(theta + e, cases, warms)[1])
-        gm = np.asarray(grad(theta - e, cases, warms)[1])
-        H[:, i] = (gp - gm) / (2 * h)
+        e = np.zeros(2)
+        e[i] = h
+        H[:, i] = (grad_theta(theta + e) - grad_theta(theta - e)) / (2 * h)
     return 0.5 * (H + H.T)
