@@ -9,17 +9,20 @@ Everything here is a pure function of ``(psi, x, mesh, params)``:
   leading axis of length ``n_cells`` is a per-cell field (e.g. ``Lame(mu=mu_cells,
   lam=1e4)``). Gradients w.r.t. params (shared or per-cell) just work.
 
-The total energy is ``E(x) = Σ_c Σ_q w_cq ψ(F_cq)``; under the ``"fbar"`` formulation
-(``mesh.formulation``, static) F_cq is replaced by F̄_cq = (J̄_c/J_cq)^{1/d} F_cq
-(:func:`~jaxelastic.kinematics.f_bar`). F̄ couples the quadrature points of a cell, so the
-F-bar kernels differentiate the element energy with respect to the element's node
-positions (``jax.grad``/``jax.jvp``/``jax.hessian``) instead of contracting P with ∇N; they
-are still cell-local, so element Hessians are exact and every solver works unchanged.
-Nothing of it is traced for ``"standard"`` meshes. Forces, HVP and element Hessians are
+The total energy is ``E(x) = Σ_c Σ_q w_cq ψ(F_cq)``. Forces, HVP and element Hessians are
 computed per element with ``jax.grad``/``jax.jvp``/``jax.hessian`` of ψ, contracted with the
 shape-function gradients, and assembled with a scatter-free node→slot gather
 (``mesh.incidence``): unsorted scatter-add is slow on XLA:CPU. ``jax.grad(energy)`` gives
 the same forces through JAX's own (scatter) path and is kept for users and tests.
+
+Under the ``"fbar"`` formulation (``mesh.formulation``, static) F_cq is replaced by
+F̄_cq = (J̄_c/J_cq)^{1/d} F_cq (:func:`~jaxelastic.kinematics.f_bar`). F̄ couples the
+quadrature points of a cell, so the F-bar kernels differentiate the element energy with
+respect to the element's node positions (``jax.grad``/``jax.jvp``/``jax.hessian``) instead
+of contracting P with ∇N; they are still cell-local, so element Hessians are exact and every
+solver works unchanged. ``"bbar"`` is the small-strain analogue (B-bar,
+:func:`~jaxelastic.kinematics.b_bar`) for small-strain materials. Nothing of either is traced
+for ``"standard"`` meshes.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from .kinematics import deformation_gradients, f_bar
+from .kinematics import b_bar, deformation_gradients, f_bar
 
 __all__ = [
     "first_piola",
@@ -92,21 +95,25 @@ def energy(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     return jnp.sum(mesh.weights * energy_densities(psi, x, mesh, params))
 
 
-def _fbar_element_energy(psi):
+def _fbar_element_energy(psi, form: str = "fbar"):
+    fmap = b_bar if form == "bbar" else f_bar
+
     def ee(xe, dN, w, p):
-        F = f_bar(jnp.einsum("ka,qkb->qab", xe, dN), w)
+        F = fmap(jnp.einsum("ka,qkb->qab", xe, dN), w)
         return jnp.sum(w * jax.vmap(psi, in_axes=(0, None))(F, p))
 
     return ee
 
 
-def _is_fbar(mesh) -> bool:
-    return getattr(mesh, "formulation", "standard") == "fbar"
+def _is_fbar(mesh) -> str | None:
+    """The mesh's F̄ map name (``"fbar"``/``"bbar"``), or None for the standard path."""
+    form = getattr(mesh, "formulation", "standard")
+    return None if form == "standard" else form
 
 
-def _element_force(psi, fbar: bool = False):
+def _element_force(psi, fbar: str | None = None):
     if fbar:
-        return jax.grad(_fbar_element_energy(psi))
+        return jax.grad(_fbar_element_energy(psi, fbar))
     P = first_piola(psi)
 
     def fe(xe, dN, w, p):
@@ -156,9 +163,9 @@ def forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     return -assemble(mesh, element_forces(psi, x, mesh, params))
 
 
-def _element_hvp(psi, fbar: bool = False):
+def _element_hvp(psi, fbar: str | None = None):
     if fbar:
-        g = jax.grad(_fbar_element_energy(psi))
+        g = jax.grad(_fbar_element_energy(psi, fbar))
 
         def he_fbar(xe, ve, dN, w, p):
             return jax.jvp(lambda y: g(y, dN, w, p), (xe,), (ve,))[1]
@@ -182,7 +189,10 @@ def hvp(psi: Psi, x: jax.Array, v: jax.Array, mesh, params) -> jax.Array:
     Never forms a Hessian: per element, ``dP = jvp(∂ψ/∂F)(F; dF)`` with ``dF = Σ v_a ⊗ ∇N_a``.
     """
     xe, ve = x[mesh.cells], v[mesh.cells]
-    fn = jax.vmap(_element_hvp(psi, _is_fbar(mesh)), in_axes=(0, 0, 0, 0, cell_params_axes(params, mesh.n_cells)))
+    fn = jax.vmap(
+        _element_hvp(psi, _is_fbar(mesh)),
+        in_axes=(0, 0, 0, 0, cell_params_axes(params, mesh.n_cells)),
+    )
     return assemble(mesh, fn(xe, ve, mesh.dN, mesh.weights, params))
 
 
@@ -198,9 +208,9 @@ def project_psd(K: jax.Array, floor: float = 0.0) -> jax.Array:
     return jnp.einsum("...ij,...j,...kj->...ik", Q, lam, Q)
 
 
-def _element_hessian(psi, fbar: bool = False):
+def _element_hessian(psi, fbar: str | None = None):
     if fbar:
-        ee = _fbar_element_energy(psi)
+        ee = _fbar_element_energy(psi, fbar)
 
         def ke_fbar(xe, dN, w, p):
             k, d = xe.shape

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 __all__ = [
     "deformation_gradients",
     "f_bar",
+    "b_bar",
     "det",
     "cofactor",
     "green_strain",
@@ -39,22 +40,47 @@ __all__ = [
 def deformation_gradients(x: jax.Array, mesh, *, fbar: bool | None = None) -> jax.Array:
     """F at every quadrature point: ``F = Σ_a x_a ⊗ ∇N_a`` (``= Ds·Dm⁻¹`` for P1).
 
-    Under the ``"fbar"`` formulation this is the F the energy uses, F̄ (see :func:`f_bar`).
+    Under the ``"fbar"``/``"bbar"`` formulations this is the F the energy uses, F̄ (see
+    :func:`f_bar`, :func:`b_bar`).
 
     Args:
         x: ``(n_nodes, dim)`` current positions [length].
         mesh: a :class:`~jaxelastic.mesh.Mesh`.
-        fbar: apply F-bar; default: when ``mesh.formulation == "fbar"``. ``fbar=False``
-            gives the compatible F of the displacement field.
+        fbar: apply the mesh's F̄ map; default: when ``mesh.formulation`` is not
+            ``"standard"``. ``fbar=False`` gives the compatible F of the displacement field.
 
     Returns:
         ``(n_cells, n_q, dim, dim)`` deformation gradients (dimensionless).
     """
     xe = x[mesh.cells]  # (c, k, d)
     F = jnp.einsum("cka,cqkb->cqab", xe, mesh.dN)
+    form = getattr(mesh, "formulation", "standard")
     if fbar is None:
-        fbar = getattr(mesh, "formulation", "standard") == "fbar"
-    return jax.vmap(f_bar)(F, mesh.weights) if fbar else F
+        fbar = form != "standard"
+    if not fbar or form == "standard":
+        return F
+    return jax.vmap(b_bar if form == "bbar" else f_bar)(F, mesh.weights)
+
+
+def b_bar(F: jax.Array, w: jax.Array) -> jax.Array:
+    """Small-strain B-bar of one cell: ``F̄_q = F_q + (⟨tr F⟩ − tr F_q)/d · I``.
+
+    The volumetric part of the small strain ε = sym(F) − I is replaced by its cell average
+    ``⟨tr ε⟩ = Σ_q w_q tr ε_q / Σ_q w_q`` (Hughes 1980, IJNME 15:1413, the B̄ method), so a
+    small-strain material (``linear``) gets exactly B-bar. It is the linearisation of
+    :func:`f_bar` at F = I but not frame-invariant: use ``"fbar"`` for finite strains.
+
+    Args:
+        F: ``(n_q, d, d)`` compatible deformation gradients of one cell.
+        w: ``(n_q,)`` positive quadrature weights.
+
+    Returns:
+        ``(n_q, d, d)`` F̄.
+    """
+    d = F.shape[-1]
+    tr = jnp.trace(F, axis1=-2, axis2=-1)  # (q,)
+    shift = (jnp.sum(w * tr) / jnp.sum(w) - tr) / d
+    return F + shift[:, None, None] * jnp.eye(d, dtype=F.dtype)[None]
 
 
 def f_bar(F: jax.Array, w: jax.Array) -> jax.Array:

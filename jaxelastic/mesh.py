@@ -39,7 +39,7 @@ __all__ = [
     "FORMULATIONS",
 ]
 
-FORMULATIONS = ("standard", "fbar")
+FORMULATIONS = ("standard", "fbar", "bbar")
 
 
 class MeshError(ValueError):
@@ -63,7 +63,8 @@ class Mesh:
             ``"tri6"``, ``"tet10"``, ``"tri3x4"``, ``"tet4x8"``).
         formulation: static; ``"standard"`` (ψ at every quadrature point's F) or ``"fbar"``
             (F̄ = (J̄/J)^{1/d} F with J̄ the cell average of J, see
-            :func:`~jaxelastic.kinematics.deformation_gradients`).
+            :func:`~jaxelastic.kinematics.deformation_gradients`), or ``"bbar"`` (its
+            small-strain analogue for small-strain materials, Hughes 1980).
     """
 
     points: jax.Array
@@ -170,8 +171,8 @@ def from_arrays(
             ``"refuse"`` (raise :class:`MeshError`).
         dtype: float dtype of the stored arrays (default: the points' dtype if it is a
             float type JAX accepts, else JAX's default float).
-        formulation: ``"standard"`` or ``"fbar"`` (not for P1 cells, where it changes
-            nothing: use ``to_quadratic(mesh, composite=True)``).
+        formulation: ``"standard"``, ``"fbar"`` or ``"bbar"`` (not for P1 cells, where it
+            changes nothing: use ``to_quadratic(mesh, composite=True)``).
 
     Raises:
         MeshError: wrong shapes or dimension, NaN/inf coordinates, out-of-range or
@@ -216,7 +217,7 @@ def from_arrays(
         raise MeshError(
             f"element {el.name!r} has {el.n_nodes} nodes per cell, cells have {cls.shape[1]}"
         )
-    if formulation == "fbar" and el.n_nodes == el.dim + 1:
+    if formulation != "standard" and el.n_nodes == el.dim + 1:
         raise MeshError(
             "formulation 'fbar' on P1 cells changes nothing (one quadrature point per cell); "
             "use to_quadratic(mesh, composite=True) for the composite F-bar element"
@@ -468,9 +469,9 @@ def boundary_nodes(mesh: Mesh) -> np.ndarray:
 
 def _finish(pts, cells, p1: str, order: int, formulation: str, kw) -> Mesh:
     """Build the generator's mesh: P1 for ``order=1``; ``order=2`` → P2 (``tri6``/``tet10``);
-    ``formulation="fbar"`` with order 1 → the composite element (``tri3x4``/``tet4x8``, P1
-    displacements on the P2 node set with one volume constraint per cell), with order 2 →
-    P2 + F-bar."""
+    ``formulation="fbar"`` (or ``"bbar"``) with order 1 → the composite element
+    (``tri3x4``/``tet4x8``, P1 displacements on the P2 node set with one volume constraint
+    per cell), with order 2 → P2 + F-bar (B-bar)."""
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order!r}")
     _check_formulation(formulation)
@@ -496,7 +497,7 @@ def to_quadratic(mesh: Mesh, *, composite: bool = False, formulation: str | None
         mesh: a ``tri3``/``tet4`` mesh.
         composite: build the composite element ``tri3x4``/``tet4x8`` (same nodes; each cell
             split into 4 / 8 linear sub-simplices) instead of P2.
-        formulation: ``"standard"``/``"fbar"``; default: ``"fbar"`` when ``composite``
+        formulation: ``"standard"``/``"fbar"``/``"bbar"``; default: ``"fbar"`` when ``composite``
             (that is what the composite element is for), else ``mesh.formulation``.
 
     Returns:
@@ -526,15 +527,15 @@ def to_quadratic(mesh: Mesh, *, composite: bool = False, formulation: str | None
 
 
 def with_formulation(mesh: Mesh, formulation: str) -> Mesh:
-    """The same mesh with another formulation (``"standard"`` or ``"fbar"``).
+    """The same mesh with another formulation (``"standard"``, ``"fbar"``, ``"bbar"``).
 
     Raises:
-        ValueError: unknown formulation, or ``"fbar"`` on a P1 mesh (one quadrature point
+        ValueError: unknown formulation, or F-bar/B-bar on a P1 mesh (one quadrature point
             per cell: F-bar would change nothing; use ``to_quadratic(mesh, composite=True)``).
     """
     _check_formulation(formulation)
     el = mesh.element_type
-    if formulation == "fbar" and el.n_nodes == el.dim + 1:
+    if formulation != "standard" and el.n_nodes == el.dim + 1:
         raise ValueError(
             "formulation 'fbar' on a P1 mesh changes nothing (one quadrature point per cell); "
             "use to_quadratic(mesh, composite=True) for the composite F-bar element"
