@@ -11,6 +11,7 @@ writes the outputs: a ParaView time series, PNG pictures and ``summary.json``.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fnmatch
 import functools
 import json
@@ -33,7 +34,17 @@ from .energy import energy
 from .io import MeshData, TimeSeriesWriter, _write_atomic, read_mesh
 from .loads import Dirichlet
 from .materials import BUILTIN, Lame, lame
-from .mesh import Mesh, MeshError, box, cook_membrane, rectangle
+from .mesh import (
+    Mesh,
+    MeshError,
+    _edge_table,
+    boundary_facets,
+    box,
+    cook_membrane,
+    rectangle,
+    to_quadratic,
+    with_formulation,
+)
 from .potential import Potential
 from .scenes import (
     _V,
@@ -78,20 +89,66 @@ _OUTPUT_PATTERNS = (
 
 def _make_mesh(v: _V, scene: Scene) -> tuple[Mesh, MeshData | None]:
     m = scene["mesh"]
+    form = m.get("formulation", "standard")
     if "file" in m:
         try:
             md = read_mesh(m["file"])
-        except MeshError as e:
+            return _lift_file_mesh(md, m.get("order"), form)
+        except (MeshError, ValueError) as e:
             raise v.err(f"[mesh].file: {e}") from None
-        return md.mesh, md
     gen = m["generator"]
+    kw = dict(order=m.get("order", 1), formulation=form)
     try:
         if gen == "cook":
-            return cook_membrane(m["n"]), None
+            return cook_membrane(m["n"], **kw), None
         fn = box if gen == "box" else rectangle
-        return fn(*m["n"], size=tuple(m["size"]), origin=tuple(m["origin"])), None
+        return fn(*m["n"], size=tuple(m["size"]), origin=tuple(m["origin"]), **kw), None
     except (MeshError, ValueError) as e:
         raise v.err(f"[mesh]: {e}") from None
+
+
+def _lift_file_mesh(md: MeshData, order, form: str) -> tuple[Mesh, MeshData]:
+    """Apply ``[mesh] order/formulation`` to a mesh read from a file. A P1 file becomes P2
+    (``order = 2``) or composite (``order`` 1/unset with F-bar/B-bar) by :func:`to_quadratic`,
+    which keeps the P1 node numbers: point sets gain the mid-edge nodes of edges with both
+    ends in the set, facet sets become the quadratic facets with the same corners."""
+    mesh = md.mesh
+    el = mesh.element_type
+    p1 = el.n_nodes == el.dim + 1
+    if order == 1 and not p1:
+        raise MeshError(f"order = 1 but the file holds {el.name} cells (P2 files stay P2)")
+    if p1 and (order == 2 or form != "standard"):
+        q = to_quadratic(mesh, composite=order != 2, formulation=form)
+        cells = np.asarray(q.cells)
+        ends = cells[:, : el.dim + 1][:, _edge_table(el)].reshape(-1, 2)  # (c·e, 2)
+        mids = cells[:, el.dim + 1 :].reshape(-1)  # the mid-node of each of those edges
+
+        def lift_points(idx):
+            inset = np.zeros(q.n_nodes, dtype=bool)
+            inset[idx] = True
+            return np.unique(np.concatenate([idx, mids[inset[ends].all(axis=1)]]))
+
+        bf = boundary_facets(q)
+        key = {tuple(sorted(f[: el.dim])): f for f in bf}
+
+        def lift_facets(f1):
+            try:
+                return np.array([key[tuple(sorted(f))] for f in f1]).reshape(-1, bf.shape[1])
+            except KeyError:
+                raise MeshError("a tagged facet set holds interior facets") from None
+
+        md = dataclasses.replace(
+            md,
+            mesh=q,
+            point_sets={k: lift_points(s) for k, s in md.point_sets.items()},
+            facet_sets={k: lift_facets(s) for k, s in md.facet_sets.items()},
+            node_map=np.concatenate([md.node_map, np.full(q.n_nodes - mesh.n_nodes, -1)]),
+        )
+        return q, md
+    if form != mesh.formulation:
+        mesh = with_formulation(mesh, form)
+        md = dataclasses.replace(md, mesh=mesh)
+    return mesh, md
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -803,6 +860,7 @@ def run_scene(scene, out_dir, progress: bool = True) -> dict:
             n_nodes=built.mesh.n_nodes,
             n_cells=built.mesh.n_cells,
             element=built.mesh.element,
+            formulation=built.mesh.formulation,
             n_dirichlet_dofs=int(np.asarray(built.bc.mask).sum()),
         ),
         material=dict(

@@ -109,9 +109,7 @@ def feature_edges(mesh, angle_deg: float = 30.0) -> np.ndarray:
     """Outline edges ``(m, 2)`` of a mesh at rest: the boundary edges in 2D; in 3D the edges
     between boundary triangles whose normals differ by more than ``angle_deg`` (the
     edges of a box) and open edges."""
-    from .mesh import boundary_facets
-
-    facets = boundary_facets(mesh)
+    facets = _linear_facets(mesh)
     if mesh.dim == 2:
         return np.asarray(facets)
     X = np.asarray(mesh.points)
@@ -130,10 +128,25 @@ def feature_edges(mesh, angle_deg: float = 30.0) -> np.ndarray:
 def wire_edges(mesh) -> np.ndarray:
     """Edges ``(m, 2)`` for a light wireframe: all cell edges in 2D, boundary-triangle
     edges in 3D."""
+    from .mesh import linear_cells
+
+    tris = linear_cells(mesh) if mesh.dim == 2 else _linear_facets(mesh)
+    return _unique_edges(tris)[0]
+
+
+def _linear_facets(mesh) -> np.ndarray:
+    """Boundary facets as linear pieces ``(m, dim)``: P2/composite facets are split at their
+    mid-edge nodes (an edge into 2 segments, a 6-node triangle into 4), so the drawing
+    passes through every boundary node (curved P2 edges appear as polylines)."""
+    from .elements import TRI3X4
     from .mesh import boundary_facets
 
-    tris = np.asarray(mesh.cells) if mesh.dim == 2 else np.asarray(boundary_facets(mesh))
-    return _unique_edges(tris)[0]
+    f = np.asarray(boundary_facets(mesh))
+    if f.shape[1] == mesh.dim:
+        return f
+    if mesh.dim == 2:
+        return np.concatenate([f[:, [0, 2]], f[:, [2, 1]]])
+    return f[:, np.asarray(TRI3X4.sub_cells)].reshape(-1, 3)
 
 
 def view_axes(rest, deformed=()) -> tuple[int, int]:

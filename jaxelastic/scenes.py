@@ -20,6 +20,11 @@ n = [20, 3, 3]                # cells per axis ("cook": n = 16, a single integer
 size = [2.0, 0.25, 0.25]      # [m], default all 1 (not for "cook")
 origin = [0.0, 0.0, 0.0]      # default 0 (not for "cook")
 # file = "part.msh"           # ... or any meshio-readable file, relative to the scene file
+order = 1                     # 1 (P1, default) | 2 (P2: tri6/tet10); a file keeps its own
+                              #   order unless given (order = 2 lifts a P1 file)
+formulation = "standard"      # | "fbar" (finite strain) | "bbar" (small strain, for "linear"):
+                              #   locking-free for nu -> 0.5; with order = 1 this is the
+                              #   composite element (tri3x4/tet4x8 on the P2 node set)
 
 [material]
 model = "neo_hookean"         # a built-in name, or "module:function" for your psi(F, params)
@@ -415,9 +420,10 @@ def _n_positional(fn) -> int:
 
 def _check_mesh(v: _V, x, base_dir: str, checks: list):
     key = "[mesh]"
-    t = v.table(key, x, ("generator", "n", "size", "origin", "file"))
+    t = v.table(key, x, ("generator", "n", "size", "origin", "file", "order", "formulation"))
     if ("generator" in t) == ("file" in t):
         raise v.err(f"{key} needs exactly one of generator = ... or file = ...")
+    fe = _check_mesh_element(v, key, t)
     if "file" in t:
         for k in ("n", "size", "origin"):
             if k in t:
@@ -426,7 +432,7 @@ def _check_mesh(v: _V, x, base_dir: str, checks: list):
         path = os.path.normpath(path)
         if not os.path.isfile(path):
             raise v.err(f"{key}.file: no such mesh file {path!r}")
-        return {"file": path}, None
+        return {"file": path, **fe}, None
     gen = v.string(f"{key}.generator", t["generator"], tuple(_GENERATOR_DIM))
     dim = _GENERATOR_DIM[gen]
     if gen == "cook":
@@ -436,7 +442,7 @@ def _check_mesh(v: _V, x, base_dir: str, checks: list):
         n = t.get("n", 16)
         if isinstance(n, list) and len(n) == 1:
             n = n[0]
-        return {"generator": gen, "n": v.integer(f"{key}.n", n, ge=1)}, dim
+        return {"generator": gen, "n": v.integer(f"{key}.n", n, ge=1), **fe}, dim
     if "n" not in t:
         raise v.err(f"{key}.n is required for generator {gen!r}")
     n = t["n"]
@@ -448,7 +454,26 @@ def _check_mesh(v: _V, x, base_dir: str, checks: list):
     for i, s in enumerate(out["size"]):
         v.number(f"{key}.size[{i}]", s, gt=0)
     out["origin"] = v.vector(f"{key}.origin", t.get("origin", [0.0] * dim), checks)
-    return out, dim
+    return {**out, **fe}, dim
+
+
+def _check_mesh_element(v: _V, key: str, t: dict) -> dict:
+    """``order`` (1 | 2) and ``formulation`` ("standard" | "fbar" | "bbar") of [mesh]."""
+    from .mesh import FORMULATIONS
+
+    out = {
+        "formulation": v.string(
+            f"{key}.formulation", t.get("formulation", "standard"), FORMULATIONS
+        )
+    }
+    if "order" in t:
+        order = v.integer(f"{key}.order", t["order"], ge=1)
+        if order not in (1, 2):
+            raise v.err(f"{key}.order must be 1 or 2, got {order}")
+        out["order"] = order
+    elif "generator" in t:
+        out["order"] = 1  # a file keeps its own order unless order = ... is given
+    return out
 
 
 def _check_material(v: _V, x, base_dir: str):
