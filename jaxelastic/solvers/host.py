@@ -14,10 +14,11 @@ solved again; the call reports it.
 from __future__ import annotations
 
 import hashlib
+import threading
 
 import numpy as np
 
-from .sparse import SparsityPattern, make_solver
+from .sparse import AMGSolver, DirectSolver, SparsityPattern, _pcg, make_solver
 
 __all__ = ["HostLinearSolver"]
 
@@ -61,6 +62,11 @@ class HostLinearSolver:
         self._key = (kind, n, d, h.hexdigest(), repr(sorted(opts.items())))
         self.calls = 0
         self.projected_calls = 0
+        self.adjoint_calls = 0
+        self.adjoint_refactorizations = 0
+        # XLA may run independent host callbacks concurrently (e.g. two load cases that
+        # share this solver): one solve at a time, since they share the factorisation
+        self._lock = threading.Lock()
 
     @classmethod
     def for_problem(cls, mesh, bc, kind: str = "direct", **opts) -> HostLinearSolver:
@@ -80,6 +86,10 @@ class HostLinearSolver:
         Returns:
             ``(Δ (n_nodes, dim), iterations int32, projected bool)``.
         """
+        with self._lock:
+            return self._call(Ke, mass_diag, rhs, rtol)
+
+    def _call(self, Ke, mass_diag, rhs, rtol):
         self.calls += 1
         Ke = np.array(Ke, dtype=np.float64)
         # autodiff Hessians are symmetric only to round-off (~1e-13); Cholesky reads one
@@ -98,6 +108,64 @@ class HostLinearSolver:
             x, info = self.solver.solve(b, rtol=float(rtol))
         x = np.where(self.fixed, 0.0, x).reshape(self.shape).astype(np.asarray(rhs).dtype)
         return x, np.int32(info.get("iterations", 1)), np.bool_(projected)
+
+    def _preconditioner(self):
+        """``r ↦ M⁻¹r`` from the current factorisation / AMG hierarchy, or None."""
+        sol = self.solver
+        if isinstance(sol, DirectSolver):
+            return sol._solve
+        if isinstance(sol, AMGSolver):
+            return None if sol.ml is None else sol.ml.aspreconditioner(cycle="V").matvec
+        return sol._M
+
+    def adjoint(self, Ke, mass_diag, rhs, rtol, reuse_iter=25):
+        """Solve ``K y = rhs`` with the exact Hessian at a converged solution (the adjoint
+        or tangent system of implicit differentiation); never PSD-projected.
+
+        PCG on the assembled ``K(x*)``, preconditioned first by the factorisation (or AMG
+        hierarchy) left by the last Newton step — the Hessian at the previous iterate,
+        within ``O(‖x* − x_{k−1}‖)`` of ``K(x*)`` — for at most ``reuse_iter`` iterations;
+        only if that does not reach ``rtol`` is ``K(x*)`` itself factorised (or given a
+        hierarchy) and PCG continued from the iterate reached.
+
+        Args:
+            Ke: ``(n_cells, k·d, k·d)`` element Hessians at x*; mass_diag: ``(n_nodes,)``;
+            rhs: ``(n_nodes, dim)``, zero on fixed dofs; rtol: relative residual target.
+
+        Returns:
+            ``(y (n_nodes, dim), iterations int32, converged bool)``; y is the best iterate
+            even when not converged (finite unless the matrix is not positive definite).
+        """
+        with self._lock:
+            self.calls += 1
+            self.adjoint_calls += 1
+            Ke = np.array(Ke, dtype=np.float64)
+            Ke = 0.5 * (Ke + np.swapaxes(Ke, 1, 2))
+            b = np.array(rhs, dtype=np.float64, order="C").reshape(-1)
+            K = self._matrix(Ke, mass_diag)
+            rtol = float(rtol)
+            M = self._preconditioner()
+            y, info, its = None, dict(converged=False), 0
+            if M is not None:
+                y, info = _pcg(K, b, M, rtol, int(reuse_iter))
+                its += info["iterations"]
+                if not np.all(np.isfinite(y)):
+                    y = None
+            if not info["converged"]:
+                self.adjoint_refactorizations += 1
+                self.solver.update(K)
+                M = self._preconditioner()
+                if M is not None:
+                    maxiter = getattr(self.solver, "maxiter", 200)
+                    y2, info = _pcg(K, b, M, rtol, maxiter, y)
+                    its += info["iterations"]
+                    if np.all(np.isfinite(y2)):
+                        y = y2
+            ok = bool(info["converged"]) and y is not None
+            if y is None:
+                y = np.full_like(b, np.nan)
+            y = np.where(self.fixed, 0.0, y).reshape(self.shape).astype(np.asarray(rhs).dtype)
+            return y, np.int32(its), np.bool_(ok)
 
     def __eq__(self, other) -> bool:
         return isinstance(other, HostLinearSolver) and self._key == other._key
