@@ -217,7 +217,7 @@ class Objective(NamedTuple):
 
 
 def _default_mesh(cases):
-    for attr in ("pot", "potential"):
+    for attr in ("pot", "base", "potential"):
         p = getattr(cases[0], attr, None)
         if p is not None:
             return p.mesh

@@ -171,16 +171,18 @@ class ParamMap:
         ab = to_unconstrained(self.E0, self.nu0, self.E_ref)
         return jnp.concatenate([ab[FIELDS.index(f)] for f in self.fields])
 
-    def _ab(self, z):
-        ab = list(to_unconstrained(self.E0, self.nu0, self.E_ref))
-        r = self.n_regions
-        for i, f in enumerate(self.fields):
-            ab[FIELDS.index(f)] = z[i * r : (i + 1) * r]
-        return ab
-
     def material(self, z) -> Material:
-        """Material of z: ``(n_regions,)`` arrays, or scalars when regions is None."""
-        E, nu = from_unconstrained(self._ab(z), self.E_ref)
+        """Material of z: ``(n_regions,)`` arrays, or scalars when regions is None; fields
+        not fitted are exactly their initial values."""
+        r = self.n_regions
+        vals = {"E": self.E0, "nu": self.nu0}
+        for i, f in enumerate(self.fields):
+            zi = z[i * r : (i + 1) * r]
+            if f == "E":
+                vals[f] = self.E_ref * jnp.exp(zi)
+            else:
+                vals[f] = -1.0 + 1.5 * jax.nn.sigmoid(zi)
+        E, nu = vals["E"], vals["nu"]
         if self.regions is None:
             return Material(E[0], nu[0])
         return Material(E, nu)

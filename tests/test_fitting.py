@@ -15,6 +15,7 @@ import pytest
 import jaxelastic as je
 from jaxelastic import loads as L
 from jaxelastic import materials as M
+from jaxelastic import parametrization as P
 from jaxelastic.fitting import (
     GradientError,
     LoadCase,
@@ -24,6 +25,7 @@ from jaxelastic.fitting import (
     equilibrium_result,
     fit,
     loss_hessian,
+    loss_landscape,
     make_objective,
     value_and_grad,
 )
@@ -397,3 +399,71 @@ def test_grad_region_parameters_fd(bar):
         for v in dirs:
             fd = _fd(f, z, v, 1e-3)
             assert _rel(float(jnp.sum(g * v)), fd) <= 1e-6, (regions, float(jnp.sum(g * v)), fd)
+
+
+def test_fit_adam_E_only(beam2):
+    """Adam (an optax transformation with a decaying step, no line search), fitting E alone
+    with nu held at its (true) initial value."""
+    import optax
+
+    b = beam2
+    cases = _cases(b, Material(E_MOD, NU))
+    with pytest.raises(ValueError, match="optimizer"):
+        fit(cases, Material(E_MOD, NU), optimizer="bfgs")
+    res = fit(
+        cases,
+        Material(3.0 * E_MOD, NU),
+        fields=("E",),
+        optimizer=optax.adam(optax.exponential_decay(0.1, 10, 0.7)),
+        max_iter=80,
+        settings=TIGHT,
+    )
+    assert res.param_history.shape == (res.iterations + 1, 2)
+    assert np.all(res.param_history[:, 1] == NU)  # nu never moves
+    assert abs(res.E / E_MOD - 1) <= 1e-2, res.E
+    assert res.loss_history[-1] <= 1e-4 * res.loss_history[0]
+
+
+def test_loss_landscape_minimum_at_truth(beam2):
+    b = beam2
+    cases = _cases(b, Material(E_MOD, NU))
+    Es, nus = np.array([80.0, 100.0, 125.0]), np.array([0.2, 0.3, 0.4])
+    land = loss_landscape(cases, Es, nus, settings=TIGHT)
+    assert land.shape == (3, 3) and np.all(np.isfinite(land))
+    assert land[1, 1] <= 1e-16 and np.all(np.delete(land.ravel(), 4) > 1e-4)
+
+
+def test_add_noise_definition():
+    rng = np.random.default_rng(0)
+    X = rng.standard_normal((4000, 3))
+    obs = X + 0.2 * rng.standard_normal((4000, 3))
+    rms = np.sqrt(np.mean(np.sum((obs - X) ** 2, axis=1)))
+    noisy = np.asarray(add_noise(jnp.asarray(obs), jnp.asarray(X), 0.05, jax.random.PRNGKey(1)))
+    assert abs(np.std(noisy - obs) / (0.05 * rms) - 1) <= 0.03
+
+
+def test_parametrization_roundtrip_and_validation():
+    E, nu = jnp.asarray([1e3, 2e7]), jnp.asarray([-0.9, 0.49])
+    z = P.to_unconstrained(E, nu, 1e5)
+    E2, nu2 = P.from_unconstrained(z, 1e5)
+    np.testing.assert_allclose(E2, E, rtol=1e-13)
+    np.testing.assert_allclose(nu2, nu, rtol=1e-12)
+    mesh = je.rectangle(2, 1)  # 4 triangles
+    labels = np.array([0, 0, 1, 1])
+    pm = P.make_param_map(Material(10.0, 0.3), mesh, regions=labels, fields=("nu",))
+    assert pm.initial_z().shape == (2,)
+    lam_mu = pm.lame(pm.initial_z())
+    assert lam_mu.mu.shape == (4,)
+    np.testing.assert_allclose(pm.material(pm.initial_z() + 0.0).E, [10.0, 10.0])
+    # adjacency of a 2x1 rectangle split into triangles: the two squares share an edge
+    assert P.region_adjacency(mesh.cells, labels).tolist() == [[0, 1]]
+    pairs = P.region_adjacency(mesh.cells, np.arange(4))
+    assert len(pairs) == 3  # 4 triangles in a strip: 3 interior edges
+    with pytest.raises(ValueError, match="fields"):
+        P.make_param_map(Material(10.0, 0.3), mesh, fields=("G",))
+    with pytest.raises(ValueError, match="labels"):
+        P.make_param_map(Material(10.0, 0.3), mesh, regions=np.array([0, 2, 2, 2]))
+    with pytest.raises(ValueError, match="nu"):
+        P.make_param_map(Material(10.0, 0.6), mesh)
+    with pytest.raises(ValueError, match="regularization needs regions"):
+        P.make_param_map(Material(10.0, 0.3), mesh, regularization=1.0)
