@@ -34,20 +34,18 @@ from .implicit import (
     DEFAULT_ADJOINT,
     AdjointSettings,
     GradientError,
-    _check_finite_grads,
     equilibrium,
     equilibrium_result,
     value_and_grad,
 )
 from .loads import Dirichlet
 from .materials import Lame, lame
+from .objective import FIT_SETTINGS, Objective, _default_mesh, _forward, make_objective
 from .parametrization import (
     CaseAux,
     Material,
-    ParamMap,
     add_noise,
     from_unconstrained,
-    make_param_map,
     observation_loss,
     to_unconstrained,
 )
@@ -76,8 +74,6 @@ __all__ = [
     "loss_hessian",
     "make_objective",
 ]
-
-FIT_SETTINGS = NewtonSettings(rtol=1e-11)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,33 +129,6 @@ jax.tree_util.register_dataclass(
 )
 
 
-def _total(z, pm: ParamMap, cases, warms, settings, adjoint):
-    params = pm.lame(z)
-    loss = pm.penalty(z)
-    auxs = []
-    for c, w in zip(cases, warms, strict=True):
-        val, aux = c.evaluate(params, w, settings, adjoint)
-        loss = loss + c.weight * val
-        auxs.append(aux)
-    return loss, tuple(auxs)
-
-
-@functools.partial(jax.jit, static_argnums=(4, 5))
-def _value_and_grad(z, pm, cases, warms, settings, adjoint):
-    return jax.value_and_grad(_total, has_aux=True)(z, pm, cases, warms, settings, adjoint)
-
-
-@functools.partial(jax.jit, static_argnums=(3, 4))
-def _forward(params, cases, warms, settings, adjoint):
-    loss = 0.0
-    auxs = []
-    for c, w in zip(cases, warms, strict=True):
-        val, aux = c.evaluate(params, w, settings, adjoint)
-        loss = loss + c.weight * val
-        auxs.append(aux)
-    return loss, tuple(auxs)
-
-
 @functools.cache
 def _named_optimizer(name: str, learning_rate: float):
     import optax
@@ -174,86 +143,6 @@ def _named_optimizer(name: str, learning_rate: float):
 @functools.cache
 def _update_fn(optimizer):
     return jax.jit(optimizer.update)
-
-
-class Objective(NamedTuple):
-    """The fitting objective in unconstrained variables (see :func:`make_objective`).
-
-    Attributes:
-        pm: the :class:`~jaxelastic.parametrization.ParamMap`.
-        cases: tuple of cases.
-        z0: initial unconstrained vector.
-        settings, adjoint: Newton and adjoint settings.
-    """
-
-    pm: ParamMap
-    cases: tuple
-    z0: jax.Array
-    settings: NewtonSettings
-    adjoint: AdjointSettings
-
-    def initial_warms(self) -> tuple:
-        return tuple(c.initial_warm() for c in self.cases)
-
-    def value_and_grad(self, z, warms=None, check: bool = True):
-        """``((loss, auxs), grad)`` at z (jit-compiled once per case structure).
-
-        With ``check`` (default), raises :class:`GradientError` if a forward solve failed
-        or the gradient is not finite; without it the caller inspects ``auxs[i].ok``.
-        """
-        warms = self.initial_warms() if warms is None else tuple(warms)
-        (loss, auxs), g = _value_and_grad(
-            jnp.asarray(z), self.pm, self.cases, warms, self.settings, self.adjoint
-        )
-        if check:
-            bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
-            if bad:
-                raise GradientError(f"forward solve failed in case(s) {bad}")
-            _check_finite_grads(g)
-        return (loss, auxs), g
-
-    def material(self, z) -> Material:
-        return self.pm.material(jnp.asarray(z))
-
-
-def _default_mesh(cases):
-    for attr in ("pot", "base", "potential"):
-        p = getattr(cases[0], attr, None)
-        if p is not None:
-            return p.mesh
-    return getattr(cases[0], "mesh", None)
-
-
-def make_objective(
-    cases: Sequence,
-    init: Material,
-    *,
-    regions=None,
-    fields: Sequence[str] = ("E", "nu"),
-    plane: str = "strain",
-    regularization: float = 0.0,
-    reg_kind: str = "tikhonov",
-    mesh=None,
-    settings: NewtonSettings = FIT_SETTINGS,
-    adjoint: AdjointSettings = DEFAULT_ADJOINT,
-) -> Objective:
-    """The :func:`fit` objective ``Σ_c w_c·loss_c(z) + regulariser(z)`` as an
-    :class:`Objective` (arguments as in :func:`fit`)."""
-    cases = tuple(cases)
-    if not cases:
-        raise ValueError("fit needs at least one case")
-    if mesh is None:
-        mesh = _default_mesh(cases)
-    pm = make_param_map(
-        init,
-        mesh,
-        regions=regions,
-        fields=fields,
-        plane=plane,
-        regularization=regularization,
-        reg_kind=reg_kind,
-    )
-    return Objective(pm, cases, pm.initial_z(), settings, adjoint)
 
 
 class FitResult(NamedTuple):
