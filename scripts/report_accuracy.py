@@ -274,7 +274,10 @@ def _h(mesh) -> float:
 # --------------------------------------------------------------------------------------
 
 
-def _cook_problem(n, element, *, psi, params, total, point, ref, steps=0):
+def _cook_problem(n, element, *, psi, params, total, point, ref, steps=0, scale=1.0):
+    """Cook's membrane problem; ``scale`` < 1 solves at ``scale × total`` and reports
+    ``u / scale`` (the linear benchmarks: identical for a linear model, and the small-strain
+    limit of a formulation whose kinematics are nonlinear, such as F-bar)."""
     import jax.numpy as jnp
 
     import jaxelastic as je
@@ -282,14 +285,14 @@ def _cook_problem(n, element, *, psi, params, total, point, ref, steps=0):
 
     m = rc.make_mesh(je.mesh.cook_membrane, n, element=element)
     facets = loads.facets_where(m, lambda X: np.abs(X[:, 0] - 48.0) < 1e-9)
-    f = loads.traction_load(m, facets, [0.0, total / 16.0])
+    f = loads.traction_load(m, facets, [0.0, scale * total / 16.0])
     bc = loads.fix(m, loads.nodes_on_plane(m, 0, 0.0))
     pot = je.Potential(mesh=m, params=params, f_ext=jnp.asarray(f), psi=psi)
     i = _node_at(m, point)
     X = np.asarray(m.points)
 
     def evaluate(x):
-        v = float(x[i, 1] - X[i, 1])
+        v = float(x[i, 1] - X[i, 1]) / scale
         return dict(value=v, reference=ref, error=abs(v - ref) / ref)
 
     return Problem(pot, bc, _h(m), evaluate, steps=steps)
@@ -307,12 +310,20 @@ def build_cook(n, element):
 
 def build_cook_incompressible(n, element):
     """Nearly incompressible linear Cook (plane strain, G = 0.375, λ = 7500): u_y(48, 52)
-    against 16.43."""
+    against 16.43, in the small-load limit (load 1e-6, u scaled back: F-bar's kinematics are
+    nonlinear, and this is a linear-elasticity benchmark)."""
     import jaxelastic as je
 
     p = je.Lame(0.375, 7500.0)
     return _cook_problem(
-        n, element, psi=je.materials.linear, params=p, total=1.0, point=(48, 52), ref=16.43
+        n,
+        element,
+        psi=je.materials.linear,
+        params=p,
+        total=1.0,
+        point=(48, 52),
+        ref=16.43,
+        scale=1e-6,
     )
 
 
@@ -776,8 +787,8 @@ def cases(quick: bool) -> dict:
                 {
                     "P1": ((4, 8, 16, 32), (8, 16)),
                     "P2": ((2, 4, 8, 16), (4, 8)),
-                    "P2-Fbar": ((2, 4, 8, 16), (4, 8)),
-                    "P1-Fbar": ((2, 4, 8, 16), (4, 8)),
+                    "P2-Fbar": ((2, 4, 8, 16), (8, 16)),
+                    "P1-Fbar": ((2, 4, 8, 16), (8, 16)),
                 },
                 ("direct", "amg"),
                 ("direct",),
@@ -977,6 +988,10 @@ def _pareto_axes(ax, rows, title, ylabel, machine):
         f = rc.pareto(t, e)
         if f.size:
             ax.step(t[f], e[f], where="post", color="k", lw=1.5, alpha=0.6, label="Pareto front")
+    from matplotlib.ticker import NullFormatter
+
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.yaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("warm wall time [s] (compile excluded)")
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize="medium")
