@@ -147,7 +147,7 @@ def _solve_ff(pot: Potential, x, mask, rhs, linear, adj: AdjointSettings, ops):
             jax.ShapeDtypeStruct((), jnp.bool_),
         )
         y0, _, _ = jax.pure_callback(
-            linear.adjoint, shapes, Ke, md, b, jnp.asarray(0.5 * adj.rtol, x.dtype)
+            linear.adjoint, shapes, Ke, md, b, jnp.asarray(adj.rtol, x.dtype)
         )
         y0 = jnp.where(jnp.all(jnp.isfinite(y0)), fm * y0, 0.0)
     r0 = b - A(y0)
