@@ -29,8 +29,8 @@ Studies (each prints a table and goes into ``report_fit.json``):
 
 Usage::
 
-    python scripts/report_fit.py --out out/report_fit            # full (about 10-20 min)
-    python scripts/report_fit.py --quick --out /tmp/report_fit   # small meshes, < 1 min
+    python scripts/report_fit.py --out out/report_fit            # full (about 7 min here)
+    python scripts/report_fit.py --quick --out /tmp/report_fit   # small meshes, 2-4 min
 """
 
 from __future__ import annotations
