@@ -16,6 +16,7 @@ mass × g by default, or the consistent ``∫ρ g N_a dV`` (``consistent=True``)
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -361,10 +362,15 @@ def facet_tractions(psi, x, mesh: Mesh, params, facets) -> np.ndarray:
     except KeyError as e:
         raise ValueError(f"facet {e.args[0]} is not a facet of any cell") from None
     _, _, N = facet_integrals(mesh.points, facets, el)
+    return np.asarray(_tractions(psi, x, mesh, params, jnp.asarray(cidx), jnp.asarray(N)))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _tractions(psi, x, mesh, params, cidx, N):
     F = deformation_gradients(x, mesh)[cidx]  # (m, q, d, d)
     w = mesh.weights[cidx]  # (m, q)
     ax = jax.tree_util.tree_map(lambda leaf: None if jnp.ndim(leaf) == 0 else 0, params)
     p = jax.tree_util.tree_map(lambda leaf: leaf if jnp.ndim(leaf) == 0 else leaf[cidx], params)
     Pq = jax.vmap(jax.vmap(first_piola(psi), in_axes=(0, None)), in_axes=(0, ax))(F, p)
     P = jnp.einsum("mq,mqij->mij", w, Pq) / jnp.sum(w, axis=1)[:, None, None]
-    return np.asarray(jnp.einsum("mij,mj->mi", P, jnp.asarray(N)))
+    return jnp.einsum("mij,mj->mi", P, N.astype(P.dtype))

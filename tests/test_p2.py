@@ -319,7 +319,15 @@ def _forces_and_energy(psi, x, m, p):
     return je.forces(psi, x, m, p), je.energy(psi, x, m, p)
 
 
-@pytest.mark.parametrize("name, d", MODEL_DIMS, ids=[f"{n}-{d}D" for n, d in MODEL_DIMS])
+@pytest.mark.parametrize(
+    "name, d",
+    [
+        pytest.param(
+            n, d, id=f"{n}-{d}D", marks=() if d == 2 or n == "corotated" else pytest.mark.slow
+        )
+        for n, d in MODEL_DIMS
+    ],
+)
 def test_patch_test_affine_map_on_curved_p2_meshes(name, d):
     """Every material reproduces an affine map exactly on distorted, curved P2 cells."""
     base = je.rectangle(3, 3, order=2) if d == 2 else je.box(2, 2, 2, order=2)
