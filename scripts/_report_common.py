@@ -25,12 +25,16 @@ ELEMENT_KW = {
     "P2": dict(order=2),
     "P2-Fbar": dict(order=2, formulation="fbar"),
     "P1-Fbar": dict(order=1, formulation="fbar"),
+    "P2-Bbar": dict(order=2, formulation="bbar"),
+    "P1-Bbar": dict(order=1, formulation="bbar"),
 }
 ELEMENT_NOTES = {
     "P1": "linear triangles/tets (tri3/tet4)",
     "P2": "quadratic triangles/tets (tri6/tet10)",
     "P2-Fbar": "quadratic with F-bar (cell-averaged J)",
     "P1-Fbar": "composite P1 (4/8 sub-simplices per P2 cell) with F-bar",
+    "P2-Bbar": "quadratic with small-strain B-bar (for the linear material)",
+    "P1-Bbar": "composite P1 with small-strain B-bar (for the linear material)",
 }
 
 

@@ -215,6 +215,11 @@ def _classify_relax(mesh, psi, params, x0, o: Outcome) -> Outcome:
             o.reason = (
                 f"mirror image of the rest shape with energy {e:.1e} (reflection = zero energy)"
             )
+        elif abs(e) <= 1e-8 * max(abs(e0), 1.0) and J.min() < 0:
+            o.reason = (
+                f"zero-energy fold: C = I in every cell, {int((J < 0).sum())} of {J.size} cells "
+                "mirrored (J = −1)"
+            )
         elif np.abs(F).max() < 1e-3:
             o.reason = f"collapsed to a point (F ≈ 0 is an equilibrium), E = {e:.3g}"
         elif np.ptp(o.x, axis=0).min() < 1e-3 * size:

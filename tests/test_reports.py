@@ -175,13 +175,12 @@ def test_stability_quick_subset(tmp_path):
         tmp_path,
         quick=True,
         scenes=["relax"],
-        models=("stable_neo_hookean_log", "neo_hookean", "stvk"),
+        models=("neo_hookean", "stvk"),
         starts=("crush", "reflect"),
         verbose=False,
     )
     out = {(r["scene"], r["material"]): r for r in res["rows"]}
     assert res["silent_nans"] == 0
-    assert out["crush", "stable_neo_hookean_log"]["outcome"] == "recovered"
     assert out["crush", "neo_hookean"]["outcome"] == "recovered"  # J = 1e-6 > 0: a barrier
     r = out["reflect", "neo_hookean"]
     assert r["outcome"] == "refused" and r["reason"].startswith("INVERTED")
@@ -189,7 +188,7 @@ def test_stability_quick_subset(tmp_path):
     r = out["reflect", "stvk"]
     assert r["outcome"] == "at rest, not recovered" and "mirror image" in r["reason"]
     assert r["volume_error"] == pytest.approx(-2.0, abs=1e-9)  # every J = −1
-    for key in [("crush", "stable_neo_hookean_log"), ("crush", "neo_hookean")]:
+    for key in [("crush", "neo_hookean"), ("crush", "stvk")]:
         assert out[key]["energy_monotone"] is True  # backward Euler dissipates
         assert abs(out[key]["volume_error"]) < 1e-6
     assert (tmp_path / "stability_shapes.png").stat().st_size > 1000
@@ -261,16 +260,17 @@ def test_nearly_incompressible_cook_p2_and_fbar(tmp_path):
         tmp_path,
         quick=True,
         case_names=["cook_nh", "cook_incompressible"],
-        elements=["P1", "P2-Fbar"],
+        elements=["P1", "P2-Fbar", "P2-Bbar"],
         verbose=False,
         plots=False,
     )
     # P1 locks: far below the reference
     assert _rows(res, "cook_nh")[-1]["value"] < 0.6 * 6.91
     assert _rows(res, "cook_incompressible")[-1]["value"] < 0.6 * 16.43
-    # F-bar reaches 2 % at the finest quick level
+    # F-bar (neo-Hookean) and B-bar (linear) reach 2 % at the finest quick level (n = 16
+    # and 8: measured 1.2 % both)
     assert _rows(res, "cook_nh", "P2-Fbar")[-1]["error"] < 0.02
-    assert _rows(res, "cook_incompressible", "P2-Fbar")[-1]["error"] < 0.02
+    assert _rows(res, "cook_incompressible", "P2-Bbar")[-1]["error"] < 0.02
 
 
 @pytest.mark.slow
