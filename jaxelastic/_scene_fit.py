@@ -302,9 +302,12 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
     cfg = scene["fit"]
     v = _V(scene.label)
     out = sr._prepare_out(out_dir, scene)
-    for name in _OUTPUTS[1:]:
+    inputs = [scene.source] + [
+        os.path.join(scene.base_dir, c["observed"]) for c in [cfg, *cfg["case"]] if "observed" in c
+    ]
+    for name in _OUTPUTS:
         p = os.path.join(out, name)
-        if scene.source and os.path.abspath(scene.source) == p:
+        if any(q and os.path.abspath(q) == p for q in inputs):
             raise SceneError(f"refusing to overwrite the input {p!r}; choose another --out")
     summary: dict[str, Any] = dict(
         scene=scene.to_dict(), scene_file=scene.source, status="running", timings={}

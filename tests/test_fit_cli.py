@@ -95,6 +95,17 @@ def test_fit_command_recovers_E_nu_and_reruns_from_files(tmp_path, capsys):
     assert s2["observations"]["n_markers"] == nodes.size  # only the observed nodes
     assert abs(s2["result"]["E"] - 100.0) < 1e-4 and abs(s2["result"]["nu"] - 0.3) < 1e-6
 
+    # `run` on a scene with [fit] fits too; an observation file is never overwritten
+    out3 = tmp_path / "out3"
+    assert cli.main(["run", str(scene), "--out", str(out3), "--no-progress"]) == 0
+    s3 = json.loads((out3 / "summary.json").read_text())
+    assert s3["result"]["E"] == pytest.approx(r["E"], rel=1e-9)
+    np.savez(out3 / "observed.npz", positions=obs["positions_0"], nodes=nodes)
+    files = ('observed = "out3/observed.npz"', 'observed = "case1.npz"')
+    scene4 = _write(tmp_path, TINY_FIT % files, "s4.toml")
+    rc = cli.main(["fit", str(scene4), "--out", str(out3), "--no-progress"])
+    assert rc == 2 and "refusing to overwrite" in capsys.readouterr().err
+
 
 @pytest.mark.parametrize(
     "fit_lines, case_lines, match",
