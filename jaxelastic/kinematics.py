@@ -53,7 +53,14 @@ def deformation_gradients(x: jax.Array, mesh, *, fbar: bool | None = None) -> ja
         ``(n_cells, n_q, dim, dim)`` deformation gradients (dimensionless).
     """
     xe = x[mesh.cells]  # (c, k, d)
-    F = jnp.einsum("cka,cqkb->cqab", xe, mesh.dN)
+    c, k, d = xe.shape
+    if k == d + 1:
+        F = jnp.einsum("cka,cqkb->cqab", xe, mesh.dN)
+    else:  # unrolled over nodes: a batched einsum is ~15× slower on CPU for P2 (tet10)
+        dN = mesh.dN
+        F = xe[:, None, 0, :, None] * dN[:, :, 0, None, :]
+        for a in range(1, k):
+            F = F + xe[:, None, a, :, None] * dN[:, :, a, None, :]
     form = getattr(mesh, "formulation", "standard")
     if fbar is None:
         fbar = form != "standard"

@@ -34,10 +34,18 @@ Throughput is elements per second. Ratios reported: ``forces / forces_handP`` (t
 ≤ 1.1) and ``forces / elem_forces`` (target ≤ 1.25). The machine load average is recorded:
 other processes on a small machine make timings noisy (compare the min column then).
 
+Elements (``--elements``, default ``p1``): ``p2`` (``tri6``/``tet10``), ``p2fbar`` (P2 with
+the F-bar formulation) and ``composite`` (``tri3x4``/``tet4x8`` with F-bar). For those only
+``energy``, ``forces``, ``hvp``, ``elem_hess`` and ``asm_incidence`` are timed (the other
+variants are P1 studies); the size is the number of cells (patches for ``composite``), and
+throughput is also reported per degree of freedom (``dofs_per_s``), the fair comparison
+across element orders at equal accuracy-relevant resolution.
+
 Usage::
 
     python scripts/bench_kernels.py [--sizes small|medium|all] [--models neo_hookean,...]
-                                    [--dims 2,3] [--out DIR]
+                                    [--dims 2,3] [--elements p1,p2,p2fbar,composite]
+                                    [--out DIR]
 
 ``--sizes small`` is 10k elements only, ``medium`` 10k and 100k, ``all`` adds 1M. A kernel
 whose run time, extrapolated from the previous size, exceeds ``--budget`` seconds per
@@ -68,13 +76,23 @@ SIZES = {"small": (10_000,), "medium": (10_000, 100_000), "all": (10_000, 100_00
 # --------------------------------------------------------------------------- meshes
 
 
-def make_mesh(dim: int, target: int) -> je.Mesh:
-    """Structured mesh of the unit square/cube with about ``target`` elements."""
+ELEMENT_KW = {
+    "p1": {},
+    "p2": {"order": 2},
+    "p2fbar": {"order": 2, "formulation": "fbar"},
+    "composite": {"order": 1, "formulation": "fbar"},
+}
+P2_KERNELS = ("energy", "forces", "hvp", "elem_hess")
+
+
+def make_mesh(dim: int, target: int, element: str = "p1") -> je.Mesh:
+    """Structured mesh of the unit square/cube with about ``target`` cells."""
+    kw = ELEMENT_KW[element]
     if dim == 2:
         n = max(1, round((target / 2) ** 0.5))
-        return je.rectangle(n, n)
+        return je.rectangle(n, n, **kw)
     n = max(1, round((target / 6) ** (1 / 3)))
-    return je.box(n, n, n)
+    return je.box(n, n, n, **kw)
 
 
 def deformed(mesh: je.Mesh, seed: int = 0) -> tuple[jax.Array, jax.Array]:
@@ -240,22 +258,22 @@ def _rel_err(a, b) -> float:
 
 
 def bench_case(
-    models, dim: int, target: int, *, min_repeats, min_time, budget, rates, log
+    models, dim: int, target: int, *, min_repeats, min_time, budget, rates, log, element="p1"
 ) -> tuple[list, list]:
     """Run every kernel on one mesh; ``rates`` carries s/element from the previous size."""
     t0 = time.perf_counter()
-    mesh = make_mesh(dim, target)
+    mesh = make_mesh(dim, target, element)
     x, v = deformed(mesh)
     perm, seg = sorted_slots(mesh)
     c = mesh.n_cells
     log(
-        f"\n== {dim}D, {c} cells, {mesh.n_nodes} nodes (mesh built in "
-        f"{time.perf_counter() - t0:.1f} s) =="
+        f"\n== {dim}D {element} ({mesh.element}, {mesh.formulation}), {c} cells, "
+        f"{mesh.n_nodes} nodes (mesh built in {time.perf_counter() - t0:.1f} s) =="
     )
     rows, skipped = [], []
 
     def run(model, kernel, fn, args, reference_out=None):
-        key = (model, dim, kernel)
+        key = (model, dim, kernel, element)
         if key in rates and rates[key] * c * (min_repeats + 1) > budget:
             why = (
                 f"estimated {rates[key] * c:.1f} s per call from the previous size; "
@@ -263,7 +281,14 @@ def bench_case(
             )
             log(f"  {model:>16s} {kernel:<17s} SKIPPED: {why}")
             skipped.append(
-                {"model": model, "dim": dim, "n_cells": c, "kernel": kernel, "reason": why}
+                {
+                    "model": model,
+                    "dim": dim,
+                    "n_cells": c,
+                    "kernel": kernel,
+                    "reason": why,
+                    "element": element,
+                }
             )
             return None
         r = measure(fn, args, min_repeats=min_repeats, min_time=min_time)
@@ -278,12 +303,18 @@ def bench_case(
             n_nodes=mesh.n_nodes,
             kernel=kernel,
             elems_per_s=c / r["median_s"],
+            element=element,
+            mesh_element=mesh.element,
+            formulation=mesh.formulation,
+            n_dofs=mesh.n_dofs,
+            dofs_per_s=mesh.n_dofs / r["median_s"],
         )
         rows.append(r)
         extra = f"  err={r['rel_err_vs_forces']:.1e}" if "rel_err_vs_forces" in r else ""
         log(
             f"  {model:>16s} {kernel:<17s} {r['median_s'] * 1e3:10.2f} ms "
             f"(min {r['min_s'] * 1e3:9.2f})  {r['elems_per_s'] / 1e6:7.2f} Melem/s  "
+            f"{r['dofs_per_s'] / 1e6:7.2f} Mdof/s  "
             f"compile {r['compile_s']:5.2f} s  hlo {r['hlo_kb']:6.0f} kB{extra}"
         )
         return out
@@ -291,7 +322,8 @@ def bench_case(
     rng = np.random.default_rng(1)
     pe = jnp.asarray(rng.standard_normal((c, mesh.cells.shape[1], dim)))
     for kernel, fn in ASSEMBLY.items():
-        run("-", kernel, fn, (pe, mesh, perm, seg))
+        if element == "p1" or kernel == "asm_incidence":
+            run("-", kernel, fn, (pe, mesh, perm, seg))
     del pe
 
     params = je.Lame(jnp.asarray(1.0e3 / 2.6), jnp.asarray(1.0e3 * 0.3 / (1.3 * 0.4)))
@@ -301,6 +333,8 @@ def bench_case(
             continue
         ref_out = None
         for kernel, fn in model_kernels(name, materials.BUILTIN[name]).items():
+            if element != "p1" and kernel not in P2_KERNELS:
+                continue
             args = (x, v, mesh, params, perm, seg)
             out = run(name, kernel, fn, args, ref_out if kernel in FORCE_VARIANTS else None)
             if kernel == "forces":
@@ -331,7 +365,11 @@ def ratios(rows) -> list[dict]:
     ``f/handP = forces / forces_handP`` (target ≤ 1.1), ``f/elem = forces / elem_forces``
     (target ≤ 1.25); ``asm/scat`` etc. compare the assembly alone (< 1: ``assemble`` faster).
     """
-    by = {(r["model"], r["dim"], r["n_cells"], r["kernel"]): r for r in rows}
+    by = {
+        (r["model"], r["dim"], r["n_cells"], r["kernel"]): r
+        for r in rows
+        if r.get("element", "p1") == "p1"
+    }
     out = []
     for model, dim, c, kernel in by:
         if kernel != "forces":
@@ -356,11 +394,18 @@ def ratios(rows) -> list[dict]:
 def format_tables(rows, rats) -> str:
     """Plain-text tables: median and min ms and Melem/s per kernel and size, and ratios."""
     lines = []
-    for model in dict.fromkeys(r["model"] for r in rows):
+    for model, element in dict.fromkeys((r["model"], r.get("element", "p1")) for r in rows):
         for dim in sorted({r["dim"] for r in rows if r["model"] == model}):
-            sel = [r for r in rows if r["model"] == model and r["dim"] == dim]
+            sel = [
+                r
+                for r in rows
+                if r["model"] == model and r["dim"] == dim and r.get("element", "p1") == element
+            ]
+            if not sel:
+                continue
             sizes = sorted({r["n_cells"] for r in sel})
-            title = "assembly alone" if model == "-" else model
+            title = ("assembly alone" if model == "-" else model) + f" [{sel[0]['mesh_element']}"
+            title += f", {sel[0]['formulation']}]"
             lines.append(
                 f"\n{title}, {dim}D — per size: median ms, min ms, Melem/s (from the median);"
                 " compile s at the largest size"
@@ -379,6 +424,16 @@ def format_tables(rows, rats) -> str:
                         )
                         comp = f"{r['compile_s']:10.2f}"
                 lines.append(f"{kernel:<20s}" + "".join(cells) + comp)
+    if any(r.get("element", "p1") != "p1" for r in rows):
+        lines.append("\nper-dof throughput (median): model, element, dim, cells, dofs, kernel")
+        for r in rows:
+            if r["model"] == "-":
+                continue
+            lines.append(
+                f"{r['model']:<16s}{r['mesh_element'] + '/' + r['formulation']:>16s}"
+                f"{r['dim']:>3d}{r['n_cells']:>9d}{r['n_dofs']:>9d}  {r['kernel']:<12s}"
+                f"{r['dofs_per_s'] / 1e6:9.3f} Mdof/s{r['elems_per_s'] / 1e6:9.3f} Melem/s"
+            )
     if rats:
         lines.append(
             "\nratios, median (min) times; targets: f/handP = forces/forces_handP ≤ 1.1, "
@@ -420,6 +475,11 @@ def main(argv=None) -> dict:
         help="comma-separated names from jaxelastic.materials.BUILTIN",
     )
     ap.add_argument("--dims", default="2,3")
+    ap.add_argument(
+        "--elements",
+        default="p1",
+        help=f"comma-separated element choices from {sorted(ELEMENT_KW)}",
+    )
     ap.add_argument("--out", default=None, help="directory for bench_kernels.json")
     ap.add_argument("--min-repeats", type=int, default=5)
     ap.add_argument(
@@ -440,6 +500,10 @@ def main(argv=None) -> dict:
         if m not in materials.BUILTIN:
             ap.error(f"unknown model {m!r}; choose from {sorted(materials.BUILTIN)}")
     dims = [int(d) for d in args.dims.split(",")]
+    elements = [e.strip() for e in args.elements.split(",") if e.strip()]
+    for e in elements:
+        if e not in ELEMENT_KW:
+            ap.error(f"unknown element {e!r}; choose from {sorted(ELEMENT_KW)}")
     min_time = (
         args.min_time if args.min_time is not None else (0.1 if args.sizes == "small" else 0.5)
     )
@@ -453,20 +517,22 @@ def main(argv=None) -> dict:
     )
     t_start = time.perf_counter()
     rows, skipped, rates = [], [], {}
-    for dim in dims:
-        for target in SIZES[args.sizes]:
-            r, s = bench_case(
-                models,
-                dim,
-                target,
-                min_repeats=args.min_repeats,
-                min_time=min_time,
-                budget=args.budget,
-                rates=rates,
-                log=log,
-            )
-            rows += r
-            skipped += s
+    for element in elements:
+        for dim in dims:
+            for target in SIZES[args.sizes]:
+                r, s = bench_case(
+                    models,
+                    dim,
+                    target,
+                    min_repeats=args.min_repeats,
+                    min_time=min_time,
+                    budget=args.budget,
+                    rates=rates,
+                    log=log,
+                    element=element,
+                )
+                rows += r
+                skipped += s
     rats = ratios(rows)
     log(format_tables(rows, rats))
     for s in skipped:
