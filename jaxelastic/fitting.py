@@ -153,7 +153,10 @@ class FitResult(NamedTuple):
         E, nu: the same values.
         loss: final loss.
         converged: a stopping criterion met (else ``max_iter`` reached or stalled).
-        stop_reason: ``"gtol"``, ``"ftol"``, ``"xtol"``, ``"stalled"`` or ``"max_iter"``.
+        stop_reason: ``"gtol"``, ``"ftol"``, ``"xtol"``, ``"roundoff"`` (the line search's
+            predicted decrease fell below 1e-12 × loss: no measurable progress is possible;
+            counted as converged), ``"stalled"`` (line search or failed solves) or
+            ``"max_iter"``.
         iterations: optimiser iterations k.
         loss_history: ``(k + 1,)`` loss at each iterate.
         param_history: ``(k + 1, 2)`` (E, ν) per iterate, or ``(k + 1, 2, n_regions)``.
@@ -307,6 +310,8 @@ def fit(
                 slope = float(jnp.vdot(g, d))
             t, accepted = 1.0, None
             for _ in range(40):  # backtracking (Armijo) / step halving on failed solves
+                if line_search and -slope * t <= 1e-12 * abs(f):
+                    break  # the predicted decrease is below the loss's round-off: done
                 zt = z + t * d
                 ft, auxs, gt, ok = evaluate(zt, warms)
                 if ok and (not line_search or ft <= f + 1e-4 * t * slope):
@@ -318,7 +323,7 @@ def fit(
                 else:
                     t *= 0.5
             if accepted is None:
-                reason = "stalled"
+                reason = "roundoff" if line_search and -slope * t <= 1e-12 * abs(f) else "stalled"
                 break
             step = float(t * jnp.max(jnp.abs(d)))
             z, f, auxs, g = accepted
@@ -343,7 +348,7 @@ def fit(
         E=mat.E,
         nu=mat.nu,
         loss=hist["loss"][-1],
-        converged=reason in ("gtol", "ftol", "xtol"),
+        converged=reason in ("gtol", "ftol", "xtol", "roundoff"),
         stop_reason=reason,
         iterations=k,
         loss_history=np.array(hist["loss"]),

@@ -467,3 +467,40 @@ def test_parametrization_roundtrip_and_validation():
         P.make_param_map(Material(10.0, 0.6), mesh)
     with pytest.raises(ValueError, match="regularization needs regions"):
         P.make_param_map(Material(10.0, 0.3), mesh, regularization=1.0)
+
+
+def _block(n):
+    """A 2 x 1 plane-strain block, rectangle(2n, n), clamped at x = 0; shear and stretch
+    tractions on x = 2 (as two potentials)."""
+    mesh = je.rectangle(2 * n, n, size=(2.0, 1.0))
+    bc = L.fix(mesh, L.nodes_on_plane(mesh, 0, 0.0))
+    fac = L.facets_where(mesh, lambda c: np.isclose(c[:, 0], 2.0))
+    fs = [jnp.asarray(L.traction_load(mesh, fac, t)) for t in ((0.0, -1.0), (2.0, 0.0))]
+    return mesh, bc, [je.Potential(mesh=mesh, params=None, f_ext=f, psi=M.neo_hookean) for f in fs]
+
+
+@pytest.mark.slow
+def test_no_inverse_crime_refinement():
+    """Targets on a fine mesh (n = 32, 4,096 cells), fits on nested coarser meshes observing
+    every coarse node: the error is discretisation error, shrinking with refinement
+    (measured: E -12.8 %, -6.4 %, -2.8 %; nu -0.053, -0.024, +0.002 for n = 2, 4, 8)."""
+    mesh_f, bc_f, pots_f = _block(32)
+    xs = _targets(pots_f, bc_f, Material(E_MOD, NU))
+    Xf = np.asarray(mesh_f.points)
+    errs = []
+    for n in (2, 4, 8):
+        mesh, bc, pots = _block(n)
+        idx = np.array([np.argmin(np.sum((Xf - x) ** 2, axis=1)) for x in np.asarray(mesh.points)])
+        assert np.allclose(Xf[idx], mesh.points)
+        cases = [LoadCase(pot=p, bc=bc, observed=x[idx]) for p, x in zip(pots, xs, strict=True)]
+        res = fit(cases, Material(3.0 * E_MOD, NU - 0.15), max_iter=80, settings=TIGHT)
+        assert res.converged, (n, res.stop_reason)
+        errs.append((res.E / E_MOD - 1, res.nu - NU, res.loss))
+        print(
+            f"n={n} ({mesh.n_cells} cells): E error {errs[-1][0]:+.2e}, nu error "
+            f"{errs[-1][1]:+.2e}, loss {errs[-1][2]:.2e}"
+        )
+    e_E = [abs(e[0]) for e in errs]
+    assert e_E[0] > e_E[1] > e_E[2] and e_E[2] <= 0.04, e_E
+    assert errs[0][2] > errs[1][2] > errs[2][2]  # misfit = model error, shrinking
+    assert abs(errs[2][1]) <= 0.01
