@@ -150,6 +150,8 @@ def run_row(case: Case, level: int, element: str, solver: str) -> dict:
         prob = case.build(level, element)
     except rc.Unavailable as e:
         return dict(row, status="SKIPPED", reason=str(e))
+    except Exception as e:  # noqa: BLE001 - one broken configuration must not end the report
+        return dict(row, status="ERROR", reason=f"{type(e).__name__}: {e}"[:300])
     mesh = prob.pot.mesh
     row.update(h=prob.h, dofs=int(mesh.n_dofs), cells=int(mesh.n_cells), elem=mesh.element)
     spec = SOLVERS[solver]
@@ -867,6 +869,8 @@ def run(
                     rows.append(r)
                     if verbose:
                         _print_row(r)
+        # partial results after every case (a long run interrupted keeps what it measured)
+        rc.write_json(Path(out) / "accuracy.partial.json", dict(machine=rc.machine(), rows=rows))
     rates = convergence_rates(rows)
     result = dict(
         machine=rc.machine(),
@@ -882,6 +886,7 @@ def run(
     )
     out = Path(out)
     rc.write_json(out / "accuracy.json", result)
+    (out / "accuracy.partial.json").unlink(missing_ok=True)
     rc.write_csv(out / "accuracy.csv", rows)
     if plots:
         result["figures"] = plot_all(result, out, table)
@@ -907,8 +912,8 @@ def _print_row(r):
     if not _printed_header[0]:
         print(_HDR)
         _printed_header[0] = True
-    if r.get("status") == "SKIPPED":
-        print(f"{r['case']:<20} {r['element']:<8} {r['level']:>4} SKIPPED: {r['reason']}")
+    if r.get("status") in ("SKIPPED", "ERROR"):
+        print(f"{r['case']:<20} {r['element']:<8} {r['level']:>4} {r['status']}: {r['reason']}")
         return
     val = r.get("value", float("nan"))
     val = val if isinstance(val, float) else float("nan")

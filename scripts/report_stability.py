@@ -25,8 +25,9 @@ regularises the rigid modes); a clamped beam released under gravity (the "drop")
 stepping); time steps h from 1e-4 s to 1 s; a 2π twist of a bar by load stepping; a thin
 sheet folding under gravity; a single tet collapsed to a line and to a point.
 
-Outputs in ``--out``: ``stability.json``, ``stability.csv``, ``stability_shapes.png`` (a grid
-of final shapes) and a printed table.
+Outputs in ``--out``: ``stability.json``, ``stability.csv``, ``stability.md`` (scenes ×
+materials, backward Euler / static), ``stability_shapes.png`` (a grid of final shapes) and a
+printed table.
 
 Usage::
 
@@ -694,12 +695,53 @@ def run(
     out = Path(out)
     rc.write_json(out / "stability.json", result)
     rc.write_csv(out / "stability.csv", rows)
+    rc.atomic_write(out / "stability.md", markdown_table(rows))
     if plots and shapes:
         result["figures"] = [plot_shapes(shapes, out / "stability_shapes.png", rows)]
     if verbose:
         print(f"\noutcomes: {result['outcomes']}; silent NaNs: {silent}")
         print(f"wrote {out / 'stability.json'}, {out / 'stability.csv'}")
     return result
+
+
+_SHORT = {
+    "recovered": "recovered",
+    "completed": "completed",
+    "at rest, not recovered": "rest ≠ rest shape",
+    "refused": "refused",
+    "failed": "**FAILED**",
+}
+
+
+def _short(r) -> str:
+    txt = _SHORT.get(r["outcome"], r["outcome"])
+    reason = r["reason"]
+    if r["outcome"] == "refused":
+        txt += f" ({reason.split(':')[0]})"
+    elif r["outcome"] == "at rest, not recovered":
+        for key, label in (
+            ("mirror", "mirror image, E = 0"),
+            ("zero-energy fold", "zero-energy fold"),
+            ("point", "collapsed: point"),
+            ("plane/line", "collapsed: line"),
+            ("other", "tangled"),
+        ):
+            if key in reason:
+                txt = f"rest: {label}"
+                break
+    return txt
+
+
+def markdown_table(rows, integrator=("backward_euler", "static")) -> str:
+    """Scenes × materials matrix of short outcomes (one integrator), as Markdown."""
+    rows = [r for r in rows if r["integrator"] in integrator]
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    models = list(dict.fromkeys(r["material"] for r in rows))
+    cell = {(r["scene"], r["material"]): _short(r) for r in rows}
+    lines = ["| scene | " + " | ".join(models) + " |", "|---" * (len(models) + 1) + "|"]
+    for sc in scenes:
+        lines.append(f"| {sc} | " + " | ".join(cell.get((sc, m), "") for m in models) + " |")
+    return "\n".join(lines) + "\n"
 
 
 _printed_hdr = [False]
