@@ -12,10 +12,15 @@ warm wall time (second solve, same compiled code), Newton and linear iterations,
 and a per-phase split of one warm Newton iteration (energy+gradient, element Hessians,
 linear solve).
 
+``--element`` (default ``p1``): ``p2`` runs the twist on ``box(n, n, n, order=2)``
+(tet10; n = 9–10 has about the dofs of P1 n = 19), ``p2fbar`` the same with the F-bar
+formulation, ``composite`` the composite F-bar tets (tet4x8, same nodes as P2).
+
 Usage::
 
     python scripts/bench_solvers.py                      # n = 10, 19, 29; cg and direct
     python scripts/bench_solvers.py --sizes 10 --solvers cg,direct,amg --out out/bench
+    python scripts/bench_solvers.py --element p2 --sizes 5,9 --solvers direct,amg
 """
 
 from __future__ import annotations
@@ -32,14 +37,21 @@ from pathlib import Path
 
 import numpy as np
 
+ELEMENTS = {
+    "p1": {},
+    "p2": {"order": 2},
+    "p2fbar": {"order": 2, "formulation": "fbar"},
+    "composite": {"order": 1, "formulation": "fbar"},
+}
 
-def _twist_problem(n: int):
+
+def _twist_problem(n: int, element: str = "p1"):
     import jax.numpy as jnp
 
     import jaxelastic as je
     from jaxelastic import loads
 
-    mesh = je.box(n, n, n)
+    mesh = je.box(n, n, n, **ELEMENTS[element])
     E, nu = 10.0, 0.3
     mu = E / (2 * (1 + nu))
     kappa = E / (3 * (1 - 2 * nu))
@@ -120,14 +132,14 @@ def _phase_split(pot, x, bc, linear):
     return dict(energy_grad=t_vg, element_hessians=t_ke, linear_solve=t_lin, linear_its=int(its))
 
 
-def worker(n: int, solver: str) -> dict:
+def worker(n: int, solver: str, element: str = "p1") -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
     from jaxelastic.solvers.host import HostLinearSolver
     from jaxelastic.solvers.newton import NewtonSettings, solve
 
-    mesh, pot, bc = _twist_problem(n)
+    mesh, pot, bc = _twist_problem(n, element)
     linear = None if solver == "cg" else HostLinearSolver.for_problem(mesh, bc, solver)
     settings = NewtonSettings(rtol=1e-8, max_steps=50)
     t0 = time.perf_counter()
@@ -138,6 +150,8 @@ def worker(n: int, solver: str) -> dict:
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # MiB on Linux
     return dict(
         n=n,
+        element=element,
+        mesh_element=mesh.element,
         tets=int(mesh.n_cells),
         dofs=int(mesh.n_dofs),
         solver=solver,
@@ -265,12 +279,13 @@ def main(argv=None) -> int:
     ap.add_argument("--solvers", default="cg,direct")
     ap.add_argument("--out", default="out/bench_solvers")
     ap.add_argument("--skip-extras", action="store_true", help="skip BE step and parts")
+    ap.add_argument("--element", default="p1", choices=sorted(ELEMENTS), help="twist element")
     ap.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.worker:
         kind = a.worker[0]
         if kind == "twist":
-            res = worker(int(a.worker[1]), a.worker[2])
+            res = worker(int(a.worker[1]), a.worker[2], *a.worker[3:4])
         elif kind == "be":
             res = be_step_worker()
         else:
@@ -284,12 +299,13 @@ def main(argv=None) -> int:
         f"{'warm s':>8} {'newton':>6} {'lin its':>7} {'RSS MiB':>8} "
         f"{'E+g s':>7} {'Ke s':>7} {'lin s':>7}"
     )
-    print("twist benchmark (2-core CPU, float64; cold includes compilation)")
+    print(f"twist benchmark, element {a.element} (2-core CPU, float64; cold includes compilation)")
     print(hdr)
     for n in [int(s) for s in a.sizes.split(",")]:
         for solver in a.solvers.split(","):
-            r = _run_sub(["twist", str(n), solver])
+            r = _run_sub(["twist", str(n), solver, a.element])
             r.setdefault("n", n)
+            r.setdefault("element", a.element)
             r.setdefault("solver", solver)
             rows.append(r)
             if "error" in r:
