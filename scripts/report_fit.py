@@ -514,9 +514,8 @@ def _plots(rep: dict, out: str) -> list:
         for ax, k, title in zip(
             axs, ("bend", "bend_stretch"), ("bend only", "bend + stretch"), strict=True
         ):
-            Lg = np.log10(
-                np.maximum(np.asarray(s[k]["landscape"], float), 1e-5)
-            )  # floor: show the valley
+            # colour floor at 1e-5: show the valley, not the exact zero at the truth
+            Lg = np.log10(np.maximum(np.asarray(s[k]["landscape"], float), 1e-5))
             cs = ax.contourf(np.asarray(s["nu_values"]), np.asarray(s["E_values"]) / 1e6, Lg, 20)
             fig.colorbar(cs, ax=ax, label="log10 loss")
             ax.plot(NU_TRUE, E_TRUE / 1e6, "r*", ms=12)
