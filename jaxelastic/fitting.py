@@ -10,7 +10,8 @@ A *case* is one experiment: a frozen pytree with a ``weight`` attribute and two 
   start, ``ok``, Newton and linear iteration counts).
 
 :class:`LoadCase` is the static case (a potential, Dirichlet data, observed positions of
-all nodes or of marker nodes); dynamic trajectories plug in the same way. :func:`fit`
+all nodes or of marker nodes); :class:`~jaxelastic.trajectory.TrajectoryCase` (re-exported
+here) observes a dynamic trajectory. :func:`fit`
 minimises ``Σ_c w_c·loss_c + regulariser`` over the unconstrained variables of
 :mod:`jaxelastic.parametrization` with optax (L-BFGS by default, or Adam), warm-starting
 every forward solve from the previous iterate's solution; a failed solve raises
@@ -51,6 +52,7 @@ from .parametrization import (
 )
 from .potential import Potential
 from .solvers.newton import NewtonSettings, Status
+from .trajectory import TrajectoryCase
 
 __all__ = [
     # re-exported from jaxelastic.implicit / parametrization for convenience
@@ -67,6 +69,7 @@ __all__ = [
     "from_unconstrained",
     # fitting
     "LoadCase",
+    "TrajectoryCase",
     "Objective",
     "FitResult",
     "fit",
