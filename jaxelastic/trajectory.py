@@ -20,6 +20,12 @@ Memory (``checkpoint``): a reverse sweep over a ``lax.scan`` stores per-step res
   checkpointing"; with ``s ≈ √n`` memory is O(√n) states): the backward pass re-solves one
   segment at a time, i.e. about twice the Newton work of the forward pass.
 
+Measured (2D cantilever, 27 nodes, 200 steps, loss on the tip only, stored residuals of
+the reverse sweep in units of one state = 4 position arrays): ``mode="reverse"``: None 106,
+``"step"`` 156 (it stores the carried state, more than the step's own residuals), 14-step
+segments 13; ``mode="forward"``: None 2,345 (element Hessians), ``"step"`` 106, segments 13.
+Same gradient in every variant (tests/test_implicit.py, slow tests).
+
 :class:`TrajectoryCase` is a fitting case (protocol of :mod:`jaxelastic.fitting`) observing
 positions at some frames of a trajectory.
 """
