@@ -345,7 +345,9 @@ def test_fit_with_noise(beam2):
         LoadCase(pot=c.pot, bc=c.bc, observed=add_noise(c.observed, b.X, 0.01, k))
         for c, k in zip(clean, keys, strict=True)
     ]
-    res = fit(cases, Material(3.0 * E_true, nu_true - 0.15), max_iter=60, settings=TIGHT)
+    res = fit(
+        cases, Material(3.0 * E_true, nu_true - 0.15), max_iter=60, settings=TIGHT, progress=True
+    )
     e_E, e_nu = res.E / E_true - 1, res.nu - nu_true
     print(f"1% noise: E rel error {e_E:.2e}, nu abs error {e_nu:.2e}, loss {res.loss:.2e}")
     assert res.converged, res.stop_reason
@@ -528,3 +530,12 @@ def test_fit_per_cell_field_tv(bar):
     err = np.abs(res.E / true.E[bar.regions] - 1)
     print(f"per-cell TV fit: max error {err.max():.2e}, median {np.median(err):.2e}")
     assert np.median(err) <= 1e-3 and err.max() <= 0.02, err
+
+
+def test_fit_failed_solve_raises(beam2):
+    """A forward solve that cannot converge (one Newton step allowed) stops the fit loudly."""
+    b = beam2
+    pot = b.pot(None)
+    cases = [LoadCase(pot=pot, bc=b.bc, observed=pot.mesh.points + 0.1)]
+    with pytest.raises(GradientError, match="forward solve failed"):
+        fit(cases, Material(E_MOD, NU), settings=NewtonSettings(rtol=1e-12, max_steps=1))
