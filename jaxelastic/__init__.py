@@ -2,7 +2,9 @@
 
 Write a strain-energy density ``psi(F, params) -> scalar``; get the first Piola–Kirchhoff
 stress, nodal forces, Hessian-vector products, element Hessians and implicit solvers by
-autodiff, on linear triangles (2D) and tetrahedra (3D).
+autodiff, on linear and quadratic triangles (2D) and tetrahedra (3D), with an F-bar option
+for nearly incompressible solids; differentiate through static and dynamic solves by the
+implicit function theorem and fit material parameters with optax.
 
 The library never changes JAX's global configuration: enable float64 yourself with
 ``jax.config.update("jax_enable_x64", True)`` (tests, scripts and the CLI do).
@@ -20,6 +22,7 @@ from . import mesh as mesh
 from . import potential as potential
 from . import reference as reference
 from . import solvers as solvers
+from . import trajectory as trajectory
 from .dynamics import Integrator as Integrator
 from .energy import assemble as assemble
 from .energy import element_forces as element_forces
@@ -44,6 +47,8 @@ from .mesh import box as box
 from .mesh import cook_membrane as cook_membrane
 from .mesh import from_arrays as from_arrays
 from .mesh import rectangle as rectangle
+from .mesh import to_quadratic as to_quadratic
+from .mesh import with_formulation as with_formulation
 from .potential import Potential as Potential
 from .solvers.continuation import solve_incremental as solve_incremental
 from .solvers.newton import NewtonResult as NewtonResult
