@@ -247,6 +247,17 @@ def _start(X, name, seed=0):
     raise ValueError(name)
 
 
+def _min_J(mesh, x):
+    import jax.numpy as jnp
+
+    from jaxelastic.kinematics import deformation_gradients
+
+    if not np.isfinite(x).all() or x.shape != np.asarray(mesh.points).shape:
+        return None
+    F = np.asarray(deformation_gradients(jnp.asarray(x), mesh, fbar=False))
+    return float(np.linalg.det(F).min())
+
+
 def _row(scene, model, integrator, o: Outcome, mesh, t_extra=None, **extra) -> dict:
     steps = o.newton
     en = np.asarray(o.energies)
@@ -267,6 +278,7 @@ def _row(scene, model, integrator, o: Outcome, mesh, t_extra=None, **extra) -> d
         energy_first=float(en[0]) if en.size else None,
         energy_last=float(en[-1]) if en.size else None,
         volume_error=_volume_error(mesh, o.x) if np.isfinite(o.x).all() else None,
+        min_J=_min_J(mesh, o.x),
         time_s=o.wall,
         compile_s=o.compile_s,
         silent_nan=o.silent_nan,
@@ -542,6 +554,9 @@ def twist_scenes(models, shapes, turns=1.0, increments=16):
             ang = np.angle(np.sum((r1[:, 0] + 1j * r1[:, 1]) * (r0[:, 0] - 1j * r0[:, 1])))
             o.mid_angle = float(np.degrees(ang) % 360)
             o.reason = f"mid-section turned by {o.mid_angle:.0f}° (uniform: {180 * turns:.0f}°)"
+            mj = _min_J(mesh, o.x)
+            if mj is not None and mj <= 0:
+                o.reason += f"; untwisted through inverted elements (min J = {mj:.2f})"
         rows.append(
             _row(
                 f"twist {360 * turns:.0f}°",
@@ -716,6 +731,8 @@ _SHORT = {
 def _short(r) -> str:
     txt = _SHORT.get(r["outcome"], r["outcome"])
     reason = r["reason"]
+    if r["outcome"] == "completed" and "inverted" in reason:
+        txt += " through inverted cells"
     if r["outcome"] == "refused":
         txt += f" ({reason.split(':')[0]})"
     elif r["outcome"] == "at rest, not recovered":

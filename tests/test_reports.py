@@ -309,3 +309,10 @@ def test_stability_quick_full(tmp_path):
     for r in rows:
         if r["scene"].startswith("drop") or r["scene"].startswith("h="):
             assert r["outcome"] == "completed", (r["scene"], r["material"], r["reason"])
+        if r["integrator"] == "backward_euler" and r["energy_monotone"] is not None:
+            # backward Euler dissipates: kinetic + elastic + load potential never grows
+            assert r["energy_monotone"], (r["scene"], r["material"])
+    # the 2π twist really turned the bar: the mid-section is half-way round
+    assert by["twist 360°", "stable_neo_hookean_log", "static"]["mid_angle_deg"] == pytest.approx(
+        180.0, abs=5.0
+    )
