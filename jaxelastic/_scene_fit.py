@@ -20,6 +20,10 @@ Scene keys (``[material]`` E/ν are the initial guess unless ``[fit].initial`` i
                                   # (n_obs, dim) and optional "nodes" (n_obs,), or .csv rows
                                   # "node, x, y[, z]"
     initial = { E = 3e6, nu = 0.15 }  # default: [material].E and .nu
+    regions = ["x < 1.0"]         # piecewise-constant E, ν: region i = cells whose centroid
+                                  # satisfies the i-th expression (first match), the last
+                                  # region the rest; target/initial E, ν then take one value
+                                  # per region (R = len(regions) + 1) or one for all
     fields = ["E", "nu"]          # which parameters are fitted (the others stay at initial)
     markers = 1.0                 # fraction of the mesh's nodes observed (random, among nodes
                                   # not fully clamped; the same markers in every case)
@@ -44,10 +48,19 @@ from typing import Any
 
 import numpy as np
 
+from ._where import where_mask
 from .io import _write_atomic
-from .scenes import _V, Scene, SceneError, load_scene
+from .scenes import _V, Scene, SceneError, _parse_where, load_scene
 
-__all__ = ["FIT_KEYS", "CASE_KEYS", "check_fit", "run_fit", "nested_nodes", "choose_markers"]
+__all__ = [
+    "FIT_KEYS",
+    "CASE_KEYS",
+    "check_fit",
+    "run_fit",
+    "nested_nodes",
+    "choose_markers",
+    "region_labels",
+]
 
 FIT_KEYS = (
     "target",
@@ -61,6 +74,7 @@ FIT_KEYS = (
     "learning_rate",
     "max_iter",
     "gtol",
+    "regions",
     "case",
 )
 CASE_KEYS = ("set", "observed", "weight")
@@ -74,13 +88,24 @@ _OUTPUTS = ("summary.json", "fit.png", "observed.npz")
 
 
 def _E_nu(v: _V, key: str, x, required=("E", "nu"), extra=()) -> dict:
+    """E and ν: numbers, or arrays of numbers (one per region)."""
     t = v.table(key, x, ("E", "nu", *extra), required)
     out = {}
-    if "E" in t:
-        out["E"] = v.number(f"{key}.E", t["E"], gt=0)
-    if "nu" in t:
-        out["nu"] = v.number(f"{key}.nu", t["nu"], gt=-1, lt=0.5)
+    for k, bounds in (("E", dict(gt=0)), ("nu", dict(gt=-1, lt=0.5))):
+        if k not in t:
+            continue
+        val = t[k]
+        if isinstance(val, (list, tuple)):
+            if not val:
+                raise v.err(f"{key}.{k} must be a number or a non-empty array of numbers")
+            out[k] = [v.number(f"{key}.{k}[{i}]", a, **bounds) for i, a in enumerate(val)]
+        else:
+            out[k] = v.number(f"{key}.{k}", val, **bounds)
     return out | {k: t[k] for k in extra if k in t}
+
+
+def _n_values(x) -> int:
+    return len(x) if isinstance(x, (list, tuple)) else 1
 
 
 def check_fit(v: _V, x, data: dict) -> dict:
@@ -114,6 +139,20 @@ def check_fit(v: _V, x, data: dict) -> dict:
     out["fields"] = [v.string(f"[fit].fields[{i}]", f, ("E", "nu")) for i, f in enumerate(fields)]
     if len(set(out["fields"])) != len(out["fields"]):
         raise v.err(f"[fit].fields has duplicates: {fields!r}")
+    regions = t.get("regions", [])
+    if not isinstance(regions, (list, tuple)):
+        raise v.err(f"[fit].regions must be an array of 'where' expressions, got {regions!r}")
+    for i, expr in enumerate(regions):
+        _parse_where(v, f"[fit].regions[{i}]", v.string(f"[fit].regions[{i}]", expr))
+    out["regions"] = list(regions)
+    n_reg = len(regions) + 1 if regions else 1
+    for sec in ("target", "initial"):
+        for k, val in out.get(sec, {}).items():
+            if k in ("E", "nu") and _n_values(val) not in (1, n_reg):
+                raise v.err(
+                    f"[fit].{sec}.{k} must have 1 or {n_reg} values (one per region), "
+                    f"got {_n_values(val)}"
+                )
     out["markers"] = v.number("[fit].markers", t.get("markers", 1.0), gt=0, le=1)
     out["noise"] = v.number("[fit].noise", t.get("noise", 0.0), ge=0)
     out["seed"] = v.integer("[fit].seed", t.get("seed", 0), ge=0)
@@ -191,6 +230,20 @@ def choose_markers(mask, fraction: float, seed: int, candidates=None) -> np.ndar
     return np.sort(np.random.default_rng(seed).choice(pool, size=k, replace=False))
 
 
+def region_labels(mesh, regions) -> np.ndarray:
+    """``(n_cells,)`` int labels: the first ``where`` expression a cell centroid satisfies,
+    ``len(regions)`` for cells matching none."""
+    X = np.asarray(mesh.points)[np.asarray(mesh.cells)].mean(axis=1)  # (n_cells, dim)
+    labels = np.full(X.shape[0], len(regions), dtype=np.int32)
+    for i, expr in reversed(list(enumerate(regions))):
+        labels[where_mask(expr, X)] = i
+    return labels
+
+
+def _per_region(x, n: int) -> np.ndarray:
+    return np.broadcast_to(np.asarray(x, float), (n,)).copy()
+
+
 def _read_observed(v: _V, key: str, path: str, n_nodes: int, dim: int):
     """(positions (n_obs, dim), nodes (n_obs,)) from a .npy / .npz / .csv file."""
     if not os.path.isfile(path):
@@ -259,9 +312,10 @@ def _figure(hist_loss, hist_p, fields, truth, title):
     ax[0].semilogy(it, np.maximum(hist_loss, 1e-300), "o-", ms=3)
     ax[0].set(xlabel="iteration", ylabel="loss", title="loss")
     for j, (name, lab) in enumerate((("E", "E [Pa]"), ("nu", "ν"))):
-        ax[j + 1].plot(it, hist_p[:, j], "o-", ms=3, label="fit")
+        ax[j + 1].plot(it, hist_p[:, j], "o-", ms=3, label="fit")  # one line per region
         if truth is not None:
-            ax[j + 1].axhline(truth[name], color="k", ls="--", lw=0.8, label="true")
+            for t in np.atleast_1d(truth[name]):
+                ax[j + 1].axhline(t, color="k", ls="--", lw=0.8)
         fitted = "fitted" if name in fields else "held fixed"
         ax[j + 1].set(xlabel="iteration", ylabel=lab, title=f"{lab.split()[0]} ({fitted})")
         ax[j + 1].legend(fontsize=8)
@@ -324,6 +378,16 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
             dim=dim, n_nodes=mesh.n_nodes, n_cells=mesh.n_cells, element=mesh.element
         )
         summary["timings"]["build"] = time.perf_counter() - t0
+        n_reg = len(cfg["regions"]) + 1 if cfg["regions"] else 1
+        labels = None
+        if cfg["regions"]:
+            labels = region_labels(mesh, cfg["regions"])
+            counts = np.bincount(labels, minlength=n_reg)
+            if not counts.all():
+                i = int(np.flatnonzero(counts == 0)[0])
+                what = f"[fit].regions[{i}]" if i < n_reg - 1 else "the rest (no region matched)"
+                raise v.err(f"{what} contains no cell (regions are tried in order)")
+            summary["regions"] = dict(expressions=list(cfg["regions"]), cells=counts)
 
         # observations: synthetic (optionally on a refined mesh) or from files
         t0 = time.perf_counter()
@@ -336,7 +400,7 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
 
             _log(
                 progress,
-                f"synthetic target at E = {truth['E']:g}, nu = {truth['nu']:g}"
+                f"synthetic target at E = {_fmt(truth['E'])}, nu = {_fmt(truth['nu'])}"
                 + (f" on a {r}x refined mesh" if r > 1 else ""),
             )
             for s in scenes:
@@ -345,7 +409,11 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
                     n = [k * r for k in n] if isinstance(n, (list, tuple)) else n * r
                     s = load_scene(s, overrides={"mesh.n": n})
                 bt = sr.build(s)
-                p = Lame(*lame(truth["E"], truth["nu"], dim=dim, plane=plane))
+                E_t, nu_t = truth["E"], truth["nu"]
+                if labels is not None:  # per-cell values of the piecewise-constant truth
+                    lab = labels if r == 1 else region_labels(bt.mesh, cfg["regions"])
+                    E_t, nu_t = _per_region(E_t, n_reg)[lab], _per_region(nu_t, n_reg)[lab]
+                p = Lame(*lame(jnp.asarray(E_t), jnp.asarray(nu_t), dim=dim, plane=plane))
                 bt = bt._replace(params=p, potential=bt.potential.replace(params=p))
                 x, _, _ = sr._static_solve(bt, progress, what="target solve")
                 idx = (
@@ -413,9 +481,13 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
         )
         t0 = time.perf_counter()
         settings = b0.settings._replace(rtol=min(b0.settings.rtol, 1e-10))
+        init = Material(E=cfg["initial"]["E"], nu=cfg["initial"]["nu"])
+        if labels is not None:
+            init = Material(_per_region(init.E, n_reg), _per_region(init.nu, n_reg))
         res = fit(
             cases,
-            Material(E=cfg["initial"]["E"], nu=cfg["initial"]["nu"]),
+            init,
+            regions=labels,
             fields=tuple(cfg["fields"]),
             plane=plane,
             optimizer=cfg["optimizer"],
@@ -427,16 +499,17 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
         )
         summary["timings"]["fit_incl_compile"] = time.perf_counter() - t0
         result = dict(
-            E=float(res.E),
-            nu=float(res.nu),
+            E=np.asarray(res.E, float),
+            nu=np.asarray(res.nu, float),
             loss=float(res.loss),
             converged=bool(res.converged),
             stop_reason=res.stop_reason,
             iterations=int(res.iterations),
         )
         if truth is not None:
-            result["E_rel_error"] = abs(result["E"] - truth["E"]) / truth["E"]
-            result["nu_rel_error"] = abs(result["nu"] - truth["nu"]) / abs(truth["nu"])
+            for k in ("E", "nu"):
+                t = _per_region(truth[k], n_reg) if labels is not None else np.asarray(truth[k])
+                result[f"{k}_rel_error"] = np.abs(result[k] - t) / np.abs(t)
         summary["result"] = result
         P = np.asarray(res.param_history)
         summary["history"] = dict(
@@ -473,6 +546,10 @@ def _savez(tmp: str, **arrays) -> None:
         np.savez(f, **arrays)
 
 
+def _fmt(x) -> str:
+    return ", ".join(f"{a:.6g}" for a in np.atleast_1d(x))
+
+
 def highlights(s: dict) -> str:
     """A few lines summarising a fit summary (for the command line)."""
     r = s["result"]
@@ -482,8 +559,11 @@ def highlights(s: dict) -> str:
     ]
     t = s.get("target")
     for k, name in (("E", "E "), ("nu", "nu")):
-        err = f"  (true {t[k]:.6g}, rel. error {r[k + '_rel_error']:.2e})" if t else ""
-        lines.append(f"  {name} = {r[k]:.6g}{err}")
+        err = ""
+        if t:
+            e = ", ".join(f"{a:.2e}" for a in np.atleast_1d(r[k + "_rel_error"]))
+            err = f"  (true {_fmt(t[k])}, rel. error {e})"
+        lines.append(f"  {name} = {_fmt(r[k])}{err}")
     o = s["observations"]
     lines.append(
         f"  {len(s['cases'])} load case(s), {o['n_markers']} observed nodes "

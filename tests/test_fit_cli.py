@@ -117,6 +117,24 @@ def test_fit_command_recovers_E_nu_and_reruns_from_files(tmp_path, capsys):
     assert rc == 2 and "refusing to overwrite" in capsys.readouterr().err
 
 
+def test_fit_command_two_regions(tmp_path, capsys):
+    # a piecewise-constant field: left and right halves, all four values recovered
+    lines = (
+        'target = { E = [100.0, 250.0], nu = [0.3, 0.4] }\nregions = ["x < 1.5"]',
+        "",
+    )
+    scene = _write(tmp_path, (TINY_FIT % lines).replace("markers = 0.3", "markers = 1.0"))
+    out = tmp_path / "out"
+    assert cli.main(["fit", str(scene), "--out", str(out), "--no-progress"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["regions"]["cells"] == [12, 12]
+    r = s["result"]
+    np.testing.assert_allclose(r["E"], [100.0, 250.0], rtol=1e-6)
+    np.testing.assert_allclose(r["nu"], [0.3, 0.4], rtol=1e-6)
+    assert max(r["E_rel_error"]) < 1e-6 and max(r["nu_rel_error"]) < 1e-6
+    assert np.shape(s["history"]["E"]) == (r["iterations"] + 1, 2)
+
+
 @pytest.mark.parametrize(
     "fit_lines, case_lines, match",
     [
@@ -133,6 +151,12 @@ def test_fit_command_recovers_E_nu_and_reruns_from_files(tmp_path, capsys):
         ),
         ('observed = "a.npy"', "", r"\[fit\.case\]\[0\]\.observed is required"),
         ("target = { E = 1.0, nu = 0.3 }\nnoise = -0.1", "", r"\[fit\]\.noise must be >= 0"),
+        (
+            'target = { E = [1.0, 2.0, 3.0], nu = 0.3 }\nregions = ["x < 1"]',
+            "",
+            r"\[fit\]\.target\.E must have 1 or 2 values",
+        ),
+        ('target = { E = 1.0, nu = 0.3 }\nregions = ["import os"]', "", r"\[fit\]\.regions\[0\]"),
     ],
 )
 def test_bad_fit_entries_name_the_key(tmp_path, fit_lines, case_lines, match):
@@ -158,6 +182,14 @@ def test_fit_without_fit_section_is_refused(tmp_path, capsys):
     p = _write(tmp_path, text)
     assert cli.main(["fit", str(p), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert "no [fit] section" in capsys.readouterr().err
+
+
+def test_empty_region_is_named(tmp_path):
+    from jaxelastic._scene_fit import run_fit
+
+    p = _write(tmp_path, TINY_FIT % ('target = { E = 1.0, nu = 0.3 }\nregions = ["x > 9"]', ""))
+    with pytest.raises(SceneError, match=r"\[fit\]\.regions\[0\] contains no cell"):
+        run_fit(p, tmp_path / "o", progress=False)
 
 
 def test_bad_observation_file_is_named(tmp_path):
