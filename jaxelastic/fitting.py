@@ -259,7 +259,17 @@ def fit(
     line_search = optimizer == "lbfgs"
     if isinstance(optimizer, str):
         optimizer = _named_optimizer(optimizer, float(learning_rate))
-    update = _update_fn(optimizer)
+    jit_update = _update_fn(optimizer)
+
+    def update(g, state, z):
+        try:
+            return jit_update(g, state, z)
+        except (TypeError, KeyError) as e:  # e.g. optax.lbfgs() with its zoom line search
+            raise ValueError(
+                "the optax optimizer needs extra arguments (value / value_fn of a line "
+                f"search?); use optimizer='lbfgs' for L-BFGS ({e})"
+            ) from e
+
     z = obj.z0
     state = optimizer.init(z)
     hist = dict(loss=[], p=[], g=[], nw=[], lin=[])
