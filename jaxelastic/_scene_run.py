@@ -37,7 +37,6 @@ from .materials import BUILTIN, Lame, lame
 from .mesh import (
     Mesh,
     MeshError,
-    _edge_table,
     boundary_facets,
     box,
     cook_membrane,
@@ -46,6 +45,7 @@ from .mesh import (
     with_formulation,
 )
 from .potential import Potential
+from .quadratic import _edge_table
 from .scenes import (
     _V,
     Built,

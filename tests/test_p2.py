@@ -90,7 +90,7 @@ def _affine_patch(mesh, seed=0, curve=0.0):
     el = mesh.element_type
     if el.n_nodes > el.dim + 1:
         cells = np.asarray(mesh.cells)
-        from jaxelastic.mesh import _edge_table
+        from jaxelastic.quadratic import _edge_table
 
         ends = cells[:, _edge_table(el)]  # (c, e, 2)
         mids = cells[:, el.dim + 1 :]
@@ -167,7 +167,7 @@ def test_to_quadratic_adds_one_midpoint_per_edge(dim):
     X, X2 = np.asarray(p1.points), np.asarray(p2.points)
     np.testing.assert_array_equal(X2[: p1.n_nodes], X)  # P1 numbering kept
     cells = np.asarray(p2.cells)
-    from jaxelastic.mesh import _edge_table
+    from jaxelastic.quadratic import _edge_table
 
     ends = cells[:, _edge_table(p2.element_type)]
     np.testing.assert_allclose(X2[cells[:, dim + 1 :]], X2[ends].mean(axis=2), atol=1e-15)
