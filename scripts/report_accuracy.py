@@ -674,10 +674,18 @@ def make_twist_case(n_ref: int):
         idx = _match(X[verts], Xr)
         scale = np.abs(ur).max()
 
+        rms_ref = float(np.sqrt(np.mean(np.sum(ur[idx] ** 2, axis=1))))
+
         def evaluate(x):
             u = x[verts] - X[verts]
-            err = float(np.linalg.norm(u - ur[idx], axis=1).max() / scale)
-            return dict(error=err, reference=label)
+            d = np.linalg.norm(u - ur[idx], axis=1)
+            # the max is set at the edges where the turned face meets the free surface (a
+            # corner singularity): it converges slowly; the RMS is the headline error
+            return dict(
+                error=float(np.sqrt(np.mean(d**2)) / rms_ref),
+                error_max=float(d.max() / scale),
+                reference=label,
+            )
 
         return Problem(pot, bc, _h(m), evaluate)
 
@@ -780,7 +788,7 @@ def cases(quick: bool) -> dict:
                 {"P1": ((2, 4, 8), (2, 4)), "P2": ((2, 4), (2,))},
                 ("direct", "amg", "cg", "cg-loose"),
                 ("direct", "cg"),
-                "max nodal |u − u_ref| / max |u_ref|",
+                "RMS nodal |u − u_ref| / RMS |u_ref|",
                 "fine-mesh solution",
             ),
             Case(
