@@ -519,6 +519,19 @@ def stiffness_scenes(models, Es):
     return rows
 
 
+def twist_reason(mid_angle: float, turns: float, min_J) -> str:
+    """Describe a finished twist: the mid-section should have turned by half the end's
+    angle; a different angle means the bar unwound (snapped through) along the path."""
+    want = (180.0 * turns) % 360
+    txt = f"mid-section turned by {mid_angle:.0f}° (uniform: {want:.0f}°)"
+    off = abs((mid_angle - want + 180) % 360 - 180)
+    if off > 20:
+        txt += "; the twist unwound along the load path (an equilibrium, not the twisted one)"
+    if min_J is not None and min_J <= 0:
+        txt += f"; inverted cells (min J = {min_J:.2f})"
+    return txt
+
+
 def twist_scenes(models, shapes, turns=1.0, increments=16):
     """A 4 × 1 × 1 bar clamped at x = 0 whose end x = 4 is turned by 2π·turns about the bar
     axis (Dirichlet data rotated by the load factor: s ↦ R(2π s)), by load stepping."""
@@ -553,10 +566,7 @@ def twist_scenes(models, shapes, turns=1.0, increments=16):
             r0, r1 = X[mid, 1:] - 0.5, o.x[mid, 1:] - o.x[mid, 1:].mean(0)
             ang = np.angle(np.sum((r1[:, 0] + 1j * r1[:, 1]) * (r0[:, 0] - 1j * r0[:, 1])))
             o.mid_angle = float(np.degrees(ang) % 360)
-            o.reason = f"mid-section turned by {o.mid_angle:.0f}° (uniform: {180 * turns:.0f}°)"
-            mj = _min_J(mesh, o.x)
-            if mj is not None and mj <= 0:
-                o.reason += f"; untwisted through inverted elements (min J = {mj:.2f})"
+            o.reason = twist_reason(o.mid_angle, turns, _min_J(mesh, o.x))
         rows.append(
             _row(
                 f"twist {360 * turns:.0f}°",
@@ -731,8 +741,10 @@ _SHORT = {
 def _short(r) -> str:
     txt = _SHORT.get(r["outcome"], r["outcome"])
     reason = r["reason"]
+    if r["outcome"] == "completed" and "unwound" in reason:
+        txt += ", but unwound"
     if r["outcome"] == "completed" and "inverted" in reason:
-        txt += " through inverted cells"
+        txt += ", inverted cells"
     if r["outcome"] == "refused":
         txt += f" ({reason.split(':')[0]})"
     elif r["outcome"] == "at rest, not recovered":
