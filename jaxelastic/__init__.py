@@ -19,6 +19,8 @@ from . import kinematics as kinematics
 from . import loads as loads
 from . import materials as materials
 from . import mesh as mesh
+from . import objective as objective
+from . import parametrization as parametrization
 from . import potential as potential
 from . import reference as reference
 from . import solvers as solvers
