@@ -24,24 +24,8 @@ __all__ = ["FIT_SETTINGS", "Objective", "make_objective"]
 FIT_SETTINGS = NewtonSettings(rtol=1e-11)
 
 
-def _total(z, pm: ParamMap, cases, warms, settings, adjoint):
-    params = pm.lame(z)
-    loss = pm.penalty(z)
-    auxs = []
-    for c, w in zip(cases, warms, strict=True):
-        val, aux = c.evaluate(params, w, settings, adjoint)
-        loss = loss + c.weight * val
-        auxs.append(aux)
-    return loss, tuple(auxs)
-
-
-@functools.partial(jax.jit, static_argnums=(4, 5))
-def _value_and_grad(z, pm, cases, warms, settings, adjoint):
-    return jax.value_and_grad(_total, has_aux=True)(z, pm, cases, warms, settings, adjoint)
-
-
-@functools.partial(jax.jit, static_argnums=(3, 4))
-def _forward(params, cases, warms, settings, adjoint):
+def _cases_loss(params, cases, warms, settings, adjoint):
+    """Σ_cases w·loss at material ``params`` and the cases' auxiliary data."""
     loss = 0.0
     auxs = []
     for c, w in zip(cases, warms, strict=True):
@@ -49,6 +33,19 @@ def _forward(params, cases, warms, settings, adjoint):
         loss = loss + c.weight * val
         auxs.append(aux)
     return loss, tuple(auxs)
+
+
+def _total(z, pm: ParamMap, cases, warms, settings, adjoint):
+    loss, auxs = _cases_loss(pm.lame(z), cases, warms, settings, adjoint)
+    return pm.penalty(z) + loss, auxs
+
+
+@functools.partial(jax.jit, static_argnums=(4, 5))
+def _value_and_grad(z, pm, cases, warms, settings, adjoint):
+    return jax.value_and_grad(_total, has_aux=True)(z, pm, cases, warms, settings, adjoint)
+
+
+_forward = jax.jit(_cases_loss, static_argnums=(3, 4))
 
 
 class Objective(NamedTuple):
