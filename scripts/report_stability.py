@@ -404,6 +404,14 @@ def _tip(mesh, x):
     return float(np.mean(x[tip, 2] - X[tip, 2]))
 
 
+def _beam_release(scene, model, mesh, pot, clamp, h, integ, n_steps):
+    """Release the clamped beam under gravity for ``n_steps`` steps of ``h``: one table row."""
+    o = _guard(_run_dynamic, pot, mesh.points, clamp, h, integ, n_steps, _settings(max_steps=100))
+    if o.outcome != "failed":
+        o = _loaded_outcome(o)
+    return _row(scene, model, integ, o, mesh, tip_uz=_tip(mesh, o.x))
+
+
 def drop_scenes(models, integrators, nus, n_steps, h=1.0 / 30.0):
     """Clamped beam released under gravity (E = 1e6 Pa) with ν → ½."""
     rows = []
@@ -411,19 +419,9 @@ def drop_scenes(models, integrators, nus, n_steps, h=1.0 / 30.0):
         for nu in nus:
             mesh, pot, clamp = _beam(1.0e6, nu, model)
             for integ in integrators:
-                o = _guard(
-                    _run_dynamic,
-                    pot,
-                    mesh.points,
-                    clamp,
-                    h,
-                    integ,
-                    n_steps,
-                    _settings(max_steps=100),
+                rows.append(
+                    _beam_release(f"drop ν={nu}", model, mesh, pot, clamp, h, integ, n_steps)
                 )
-                if o.outcome != "failed":
-                    o = _loaded_outcome(o)
-                rows.append(_row(f"drop ν={nu}", model, integ, o, mesh, tip_uz=_tip(mesh, o.x)))
     return rows
 
 
@@ -434,19 +432,7 @@ def h_scenes(models, integrators, hs, n_steps):
         mesh, pot, clamp = _beam(1.0e6, 0.3, model)
         for integ in integrators:
             for h in hs:
-                o = _guard(
-                    _run_dynamic,
-                    pot,
-                    mesh.points,
-                    clamp,
-                    h,
-                    integ,
-                    n_steps,
-                    _settings(max_steps=100),
-                )
-                if o.outcome != "failed":
-                    o = _loaded_outcome(o)
-                rows.append(_row(f"h={h:g} s", model, integ, o, mesh, tip_uz=_tip(mesh, o.x)))
+                rows.append(_beam_release(f"h={h:g} s", model, mesh, pot, clamp, h, integ, n_steps))
     return rows
 
 
