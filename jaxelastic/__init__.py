@@ -11,20 +11,15 @@ The library never changes JAX's global configuration: enable float64 yourself wi
 """
 
 from . import dynamics as dynamics
-from . import elements as elements
 from . import fitting as fitting
-from . import implicit as implicit
 from . import io as io
 from . import kinematics as kinematics
 from . import loads as loads
 from . import materials as materials
 from . import mesh as mesh
-from . import objective as objective
-from . import parametrization as parametrization
 from . import potential as potential
 from . import reference as reference
 from . import solvers as solvers
-from . import trajectory as trajectory
 from .dynamics import Integrator as Integrator
 from .energy import assemble as assemble
 from .energy import element_forces as element_forces
@@ -52,11 +47,15 @@ from .mesh import rectangle as rectangle
 from .mesh import to_quadratic as to_quadratic
 from .mesh import with_formulation as with_formulation
 from .potential import Potential as Potential
-from .solvers.continuation import solve_incremental as solve_incremental
-from .solvers.newton import NewtonResult as NewtonResult
-from .solvers.newton import NewtonSettings as NewtonSettings
-from .solvers.newton import SolveError as SolveError
-from .solvers.newton import Status as Status
-from .solvers.newton import solve as solve
+from .solvers import AMG as AMG
+from .solvers import CG as CG
+from .solvers import Direct as Direct
+from .solvers import ImplicitAdjoint as ImplicitAdjoint
+from .solvers import Newton as Newton
+from .solvers import Solution as Solution
+from .solvers import SolveError as SolveError
+from .solvers import Status as Status
+from .solvers import solve as solve
+from .solvers import solve_incremental as solve_incremental
 
 __version__ = "0.1.0"

@@ -1,11 +1,14 @@
 """Command line: ``jaxelastic run [SCENE] --out DIR``, ``jaxelastic fit SCENE --out DIR``,
-``jaxelastic crosscheck``, ``jaxelastic scenes`` (also ``python -m jaxelastic ...``).
+``jaxelastic crosscheck``, ``jaxelastic scenes``, ``jaxelastic schema`` (also
+``python -m jaxelastic ...``).
 
 ``run`` without a SCENE runs the shipped ``default`` scene (a neo-Hookean beam released
 under gravity, simulated until it settles and compared with the static solution). SCENE is
 a TOML file or the name of a shipped scene (``jaxelastic scenes`` lists them);
 ``--set KEY=VALUE`` overrides a scene entry (VALUE in TOML syntax, e.g.
-``--set mesh.n=[10,2,2] --set integrator.duration=1.0``).
+``--set mesh.n=[10,2,2] --set integrator.duration=1.0``). ``schema`` prints the JSON
+Schema of a scene file (``jaxelastic schema > scene.schema.json``) for editors with TOML
+schema support (taplo / Even Better TOML); the reference is ``docs/scenes.md``.
 
 The CLI, and only the CLI, changes JAX's configuration: it enables float64 and JAX's
 persistent compilation cache in ``$JAXELASTIC_CACHE_DIR`` (default
@@ -113,6 +116,13 @@ def _parser() -> argparse.ArgumentParser:
         add_help=False,
     )
     sub.add_parser("scenes", help="list the shipped scenes")
+    sub.add_parser(
+        "schema",
+        help="print the JSON Schema of a scene file (jaxelastic schema > scene.schema.json)",
+        description="Print the JSON Schema (draft 2020-12) of a scene file, for editors "
+        "with TOML schema support (taplo / Even Better TOML: '#:schema ./scene.schema.json' "
+        "on the first line of a scene file).",
+    )
     return p
 
 
@@ -142,7 +152,7 @@ def _crosscheck(argv) -> int:
 
 
 def _list_scenes() -> int:
-    from .scenes import load_scene, shipped_scenes
+    from .scene import load_scene, shipped_scenes
 
     for name, path in shipped_scenes().items():
         try:
@@ -150,6 +160,13 @@ def _list_scenes() -> int:
         except Exception as e:  # noqa: BLE001 — a broken shipped file is reported, not fatal
             desc = f"(invalid: {e})"
         print(f"{name:10s} {desc}\n{'':10s} {path}")
+    return 0
+
+
+def _print_schema() -> int:
+    from .scene import json_schema
+
+    print(json.dumps(json_schema(), indent=2))
     return 0
 
 
@@ -200,7 +217,7 @@ def _fmt_vec(v) -> str:
 
 
 def _run(args) -> int:
-    from .scenes import SceneError, load_scene
+    from .scene import SceneError, load_scene
 
     overrides = {}
     for item in args.set:
@@ -210,8 +227,8 @@ def _run(args) -> int:
             return 2
         overrides[key.strip()] = _parse_value(val.strip())
     _enable_jax(cache=not args.no_cache)
-    from .scenes import run_scene
-    from .solvers.newton import SolveError
+    from .scene import run_scene
+    from .solvers import SolveError
 
     t0 = time.perf_counter()
     try:
@@ -238,11 +255,10 @@ def _run(args) -> int:
 
 
 def _fit(scene, out: str, args, t0: float) -> int:
-    """``jaxelastic fit`` (or ``run`` on a scene with ``[fit]``): see jaxelastic._scene_fit."""
-    from ._scene_fit import highlights, run_fit
-    from .implicit import GradientError
-    from .scenes import SceneError
-    from .solvers.newton import SolveError
+    """``jaxelastic fit`` (or ``run`` on a scene with ``[fit]``): see jaxelastic.scene.fit."""
+    from .scene import SceneError
+    from .scene.fit import highlights, run_fit
+    from .solvers import GradientError, SolveError
 
     try:
         summary = run_fit(scene, out, progress=not args.no_progress)
@@ -285,6 +301,8 @@ def main(argv=None) -> int:
         return 2
     if args.command == "scenes":
         return _list_scenes()
+    if args.command == "schema":
+        return _print_schema()
     return _run(args)
 
 

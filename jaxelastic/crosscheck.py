@@ -40,11 +40,8 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import math
-import os
 import sys
-import tempfile
 
 import jax
 import jax.numpy as jnp
@@ -52,6 +49,7 @@ import numpy as np
 
 from . import materials, reference
 from .energy import energy, first_piola, forces, hvp
+from .io import write_json
 from .kinematics import deformation_gradients
 from .materials import Lame
 from .mesh import box, rectangle
@@ -309,7 +307,7 @@ def crosscheck(dims=(2, 3), models=None, params: Lame | None = None) -> list[dic
         ValueError: unknown model or dimension.
         RuntimeError: float64 is not enabled (the tolerances are float64 tolerances).
     """
-    if not jax.config.jax_enable_x64:
+    if not jax.config.read("jax_enable_x64"):
         raise RuntimeError(
             "crosscheck needs float64: call jax.config.update('jax_enable_x64', True) first"
         )
@@ -373,24 +371,6 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def _write_json_atomic(path: str, rows: list[dict]) -> None:
-    """Write ``rows`` as JSON to ``path`` atomically (temp file in the same dir + replace)."""
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".crosscheck-", suffix=".json.tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(rows, fh, indent=2, allow_nan=False)
-            fh.write("\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a report is meant to be read
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def main(argv=None) -> int:
     """Command-line entry point: run :func:`crosscheck`, print the table.
 
@@ -419,7 +399,7 @@ def main(argv=None) -> int:
     rows = crosscheck(dims=tuple(args.dims), models=args.models)
     print(format_table(rows))
     if args.json is not None:
-        _write_json_atomic(args.json, rows)
+        write_json(args.json, rows, indent=2)
     return 0 if rows and all(r["passed"] for r in rows) else 1
 
 

@@ -1,4 +1,5 @@
-"""Mesh files in and out: meshio reading with named sets, VTU output, ParaView time series.
+"""Files in and out: meshio reading with named sets, VTU output, ParaView time series, and
+the one atomic writer and JSON sanitiser of the package.
 
 * :func:`read_mesh` reads any meshio-readable file (Gmsh ``.msh`` v2/v4 ascii/binary, VTU,
   XDMF, Abaqus ``.inp``, …) holding linear or quadratic triangles (2D: ``triangle``,
@@ -8,6 +9,9 @@
 * :func:`write_vtu` writes one state (rest geometry + ``displacement``, optionally J,
   Green strain, first Piola stress, von Mises stress and ψ per cell); :class:`TimeSeriesWriter`
   writes ``basename_0000.vtu``… and a ParaView ``.pvd`` collection.
+* :func:`write_atomic` is the atomic writer every output goes through;
+  :func:`to_jsonable` turns numpy/JAX values, NamedTuples, enums and paths into plain JSON
+  values (NaN/inf → ``null``) and :func:`write_json` writes them atomically.
 
 Every file is written atomically (temporary file in the target directory, then
 ``os.replace``): a reader never sees a half-written file and a crash leaves no partial
@@ -22,10 +26,14 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import enum
 import functools
+import json
+import math
 import os
 import tempfile
 import xml.etree.ElementTree as ET
+from typing import Any, cast
 
 import jax
 import jax.numpy as jnp
@@ -35,7 +43,17 @@ from .energy import cell_params_axes, first_piola
 from .kinematics import deformation_gradients, det, green_strain
 from .mesh import Mesh, MeshError, boundary_facets, from_arrays
 
-__all__ = ["MeshIOError", "MeshData", "read_mesh", "write_vtu", "cell_fields", "TimeSeriesWriter"]
+__all__ = [
+    "MeshIOError",
+    "MeshData",
+    "read_mesh",
+    "write_vtu",
+    "cell_fields",
+    "TimeSeriesWriter",
+    "write_atomic",
+    "write_json",
+    "to_jsonable",
+]
 
 # volume cell types per dimension, with the matching boundary facet type
 _VOLUME = {2: ("triangle", "triangle6"), 3: ("tetra", "tetra10")}
@@ -128,6 +146,44 @@ def _tagged_groups(raw):
                 yield name, i, np.asarray(idx, dtype=np.int64).ravel()
 
 
+def _named_sets(raw, mesh: Mesh, new: np.ndarray, offset: dict, vol_dim: int, vol_type: str):
+    """Point, cell and facet sets of ``raw`` in the numbering of ``mesh``.
+
+    Args:
+        raw: the meshio mesh as read.
+        mesh: the validated rest mesh built from its volume cells.
+        new: ``(n_file_nodes,)`` index in ``mesh`` of each file node (−1: pruned).
+        offset: block index → index in ``mesh.cells`` of the block's first cell.
+        vol_dim, vol_type: dimension and meshio type of the volume cells.
+
+    Returns:
+        ``(point_sets, cell_sets, facet_sets)`` as in :class:`MeshData`.
+    """
+    blocks = raw.cells
+    acc: dict[str, dict[str, list]] = {"point": {}, "cell": {}, "facet": {}}
+    for name, i, local in _tagged_groups(raw):
+        b = blocks[i]
+        if b.dim == vol_dim:
+            acc["cell"].setdefault(name, []).append(offset[i] + local)
+            continue
+        conn = new[np.asarray(b.data, dtype=np.int64)[local]]
+        if b.type == _FACET[vol_type]:
+            acc["facet"].setdefault(name, []).append(conn[(conn >= 0).all(axis=1)])
+        elif b.dim == 0 or (vol_dim == 3 and b.dim == 1):
+            acc["point"].setdefault(name, []).append(conn.ravel()[conn.ravel() >= 0])
+    for name, idx in raw.point_sets.items():
+        idx = new[np.asarray(idx, dtype=np.int64).ravel()]
+        acc["point"].setdefault(name, []).append(idx[idx >= 0])
+
+    point_sets = {k: np.unique(np.concatenate(v)) for k, v in acc["point"].items()}
+    cell_sets = {k: np.unique(np.concatenate(v)) for k, v in acc["cell"].items()}
+    facet_sets = {}
+    if acc["facet"]:
+        bf = boundary_facets(mesh)
+        facet_sets = {k: _orient_facets(np.concatenate(v), bf) for k, v in acc["facet"].items()}
+    return point_sets, cell_sets, facet_sets
+
+
 def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> MeshData:
     """Read a triangle (2D) or tetrahedron (3D) mesh file, linear or quadratic, with its
     named sets.
@@ -190,25 +246,7 @@ def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> M
     except MeshError as e:
         raise MeshIOError(f"{path}: {e}") from None
 
-    acc: dict[str, dict[str, list]] = {"point": {}, "cell": {}, "facet": {}}
-    for name, i, local in _tagged_groups(raw):
-        b = blocks[i]
-        if b.dim == vol_dim:
-            acc["cell"].setdefault(name, []).append(offset[i] + local)
-            continue
-        conn = new[np.asarray(b.data, dtype=np.int64)[local]]
-        if b.type == _FACET[vol_type]:
-            acc["facet"].setdefault(name, []).append(conn[(conn >= 0).all(axis=1)])
-        elif b.dim == 0 or (vol_dim == 3 and b.dim == 1):
-            acc["point"].setdefault(name, []).append(conn.ravel()[conn.ravel() >= 0])
-    for name, idx in raw.point_sets.items():
-        idx = new[np.asarray(idx, dtype=np.int64).ravel()]
-        acc["point"].setdefault(name, []).append(idx[idx >= 0])
-
-    point_sets = {k: np.unique(np.concatenate(v)) for k, v in acc["point"].items()}
-    cell_sets = {k: np.unique(np.concatenate(v)) for k, v in acc["cell"].items()}
-    bf = boundary_facets(mesh) if acc["facet"] else None
-    facet_sets = {k: _orient_facets(np.concatenate(v), bf) for k, v in acc["facet"].items()}
+    point_sets, cell_sets, facet_sets = _named_sets(raw, mesh, new, offset, vol_dim, vol_type)
     return MeshData(mesh, point_sets, cell_sets, facet_sets, node_map, path)
 
 
@@ -283,19 +321,134 @@ def _same_file(a: str, b: str) -> bool:
     return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
 
 
-def _write_atomic(path: str, write) -> None:
-    """``write(tmp)`` to a temporary file next to ``path``, then ``os.replace`` it."""
+def write_atomic(path, write_fn) -> None:
+    """Write a file atomically: ``write_fn(tmp)`` fills a temporary file, which replaces
+    ``path`` only once it is complete.
+
+    The temporary file lies in the directory of ``path`` (so ``os.replace`` is atomic on
+    POSIX and Windows), is flushed to disk with ``fsync`` before the rename and is removed
+    if anything fails, ``KeyboardInterrupt`` included: ``path`` then keeps its old content
+    (or stays absent) and no temporary file is left behind. The new file gets mode 0644.
+
+    Args:
+        path: the destination file (``str`` or path-like); its directory must exist.
+        write_fn: called once as ``write_fn(tmp)`` with the temporary path (a ``str``
+            ending in ``.tmp``); it must write the whole content to that path (pass an
+            explicit format to writers that guess it from the extension).
+    """
+    path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
     os.close(fd)
     try:
-        write(tmp)
-        os.chmod(tmp, 0o644)
+        write_fn(tmp)
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; outputs are meant to be read
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.remove(tmp)
         raise
+
+
+def to_jsonable(obj, *, nonfinite: str = "null"):
+    """Convert ``obj`` recursively into plain JSON values (dict, list, str, int, float,
+    bool, None).
+
+    Handles dicts (keys become ``str``; enum keys their name), lists, tuples and sets,
+    NamedTuples (a dict of their fields), dataclass instances (a dict of their fields),
+    enums (their ``name``, also for ``IntEnum`` such as ``Status``), paths (``os.fspath``),
+    numpy and JAX scalars and arrays (nested lists), Python and numpy numbers.
+
+    Args:
+        obj: the object to convert (not a traced JAX value).
+        nonfinite: how NaN and ±inf floats are written: ``"null"`` (default, ``None``) or
+            ``"string"`` (``"nan"``, ``"inf"``, ``"-inf"``).
+
+    Returns:
+        A value that ``json.dumps(..., allow_nan=False)`` accepts.
+
+    Raises:
+        TypeError: an object of another type (the message names its position).
+        ValueError: an unknown ``nonfinite``.
+    """
+    if nonfinite not in ("null", "string"):
+        raise ValueError(f"nonfinite must be 'null' or 'string', got {nonfinite!r}")
+    return _jsonable(obj, nonfinite, "obj")
+
+
+def _json_float(x: float, nonfinite: str):
+    if math.isfinite(x):
+        return x
+    if nonfinite == "null":
+        return None
+    return "nan" if math.isnan(x) else ("inf" if x > 0 else "-inf")
+
+
+def _json_key(k) -> str:
+    return k.name if isinstance(k, enum.Enum) else str(k)
+
+
+def _jsonable(x, nonfinite: str, where: str):
+    """:func:`to_jsonable` of ``x`` found at ``where`` (for the error message)."""
+    if x is None or isinstance(x, bool):
+        return x
+    if isinstance(x, str):
+        return str(x)  # np.str_ too
+    if isinstance(x, enum.Enum):
+        return x.name
+    if isinstance(x, int):
+        return int(x)
+    if isinstance(x, float):
+        return _json_float(float(x), nonfinite)
+    if isinstance(x, (np.ndarray, np.generic, jax.Array)):
+        a = np.asarray(x)
+        if a.dtype.kind in "biu":
+            return a.tolist()
+        if a.dtype.kind == "f":
+            if a.ndim == 0:
+                return _json_float(float(a), nonfinite)
+            return [_jsonable(v, nonfinite, f"{where}[{i}]") for i, v in enumerate(a)]
+        if a.dtype.kind in "OUS":
+            return _jsonable(a.tolist(), nonfinite, where)
+        raise TypeError(f"to_jsonable: {where} is an array of dtype {a.dtype}")
+    if isinstance(x, dict):
+        return {_json_key(k): _jsonable(v, nonfinite, f"{where}[{k!r}]") for k, v in x.items()}
+    if isinstance(x, tuple) and hasattr(x, "_asdict"):  # NamedTuple
+        fields: dict = cast(Any, x)._asdict()
+        return {k: _jsonable(v, nonfinite, f"{where}.{k}") for k, v in fields.items()}
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return {
+            f.name: _jsonable(getattr(x, f.name), nonfinite, f"{where}.{f.name}")
+            for f in dataclasses.fields(x)
+        }
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v, nonfinite, f"{where}[{i}]") for i, v in enumerate(x)]
+    if isinstance(x, (set, frozenset)):
+        items = [_jsonable(v, nonfinite, f"{where}{{...}}") for v in x]
+        return sorted(items, key=repr)
+    if isinstance(x, os.PathLike):
+        return os.fspath(x)
+    raise TypeError(f"to_jsonable: {where} has type {type(x).__name__}, not JSON-serialisable")
+
+
+def write_json(path, obj, *, indent: int | None = 1, nonfinite: str = "null") -> None:
+    """Write ``to_jsonable(obj)`` as JSON (UTF-8, trailing newline) atomically to ``path``.
+
+    Args:
+        path: the destination file; see :func:`write_atomic`.
+        obj: anything :func:`to_jsonable` accepts.
+        indent: ``json.dumps`` indentation (``None``: one line).
+        nonfinite: how NaN/inf are written, see :func:`to_jsonable`.
+    """
+    text = json.dumps(to_jsonable(obj, nonfinite=nonfinite), indent=indent, allow_nan=False)
+
+    def write(tmp: str) -> None:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text + "\n")
+
+    write_atomic(path, write)
 
 
 def write_vtu(
@@ -345,8 +498,8 @@ def write_vtu(
     x = rest if x is None else np.asarray(x, dtype=np.float64)
     if x.shape != rest.shape:
         raise ValueError(f"x must have shape {rest.shape} like mesh.points, got {x.shape}")
-    pdata = {"displacement": _pad3(x - rest)}
-    cdata = cell_fields(psi, x, mesh, params) if psi is not None else {}
+    pdata: dict[str, Any] = {"displacement": _pad3(x - rest)}
+    cdata: dict[str, Any] = cell_fields(psi, x, mesh, params) if psi is not None else {}
     for extra, out, n, what in (
         (point_data, pdata, mesh.n_nodes, "n_nodes"),
         (cell_data, cdata, mesh.n_cells, "n_cells"),
@@ -364,7 +517,7 @@ def write_vtu(
         point_data=pdata,
         cell_data={k: [v] for k, v in cdata.items()},
     )
-    _write_atomic(path, lambda tmp: meshio.write(tmp, m, file_format="vtu"))
+    write_atomic(path, lambda tmp: meshio.write(tmp, m, file_format="vtu"))
 
 
 class TimeSeriesWriter:
@@ -436,7 +589,7 @@ class TimeSeriesWriter:
             ET.SubElement(coll, "DataSet", timestep=repr(t), group="", part="0", file=name)
         ET.indent(root)
         tree = ET.ElementTree(root)
-        _write_atomic(self.pvd_path, lambda tmp: tree.write(tmp, "utf-8", xml_declaration=True))
+        write_atomic(self.pvd_path, lambda tmp: tree.write(tmp, "utf-8", xml_declaration=True))
 
     def close(self) -> None:
         """Write the final ``.pvd`` collection; further writes raise."""

@@ -24,10 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .elements import Element, facet_rule
 from .energy import first_piola, forces
 from .kinematics import deformation_gradients
 from .mesh import Mesh, boundary_facets
+from .mesh.elements import Element, facet_rule
 
 __all__ = [
     "Dirichlet",
@@ -164,7 +164,7 @@ def facets_where(mesh: Mesh, predicate: Callable[[np.ndarray], np.ndarray]) -> n
 
 
 def _facet_element(dim: int, n_facet_nodes: int, element: Element | str | None) -> Element:
-    from .elements import get_element
+    from .mesh.elements import get_element
 
     if element is not None:
         el = get_element(element) if isinstance(element, str) else element

@@ -138,8 +138,8 @@ def _linear_facets(mesh) -> np.ndarray:
     """Boundary facets as linear pieces ``(m, dim)``: P2/composite facets are split at their
     mid-edge nodes (an edge into 2 segments, a 6-node triangle into 4), so the drawing
     passes through every boundary node (curved P2 edges appear as polylines)."""
-    from .elements import TRI3X4
     from .mesh import boundary_facets
+    from .mesh.elements import TRI3X4
 
     f = np.asarray(boundary_facets(mesh))
     if f.shape[1] == mesh.dim:

@@ -33,6 +33,7 @@ __all__ = [
     "node_hessian_blocks",
     "element_hessian_vp",
     "elastic_element_hessians",
+    "mass_diagonal",
 ]
 
 
@@ -119,8 +120,9 @@ def gradient(pot: Potential, x: jax.Array) -> jax.Array:
     return g
 
 
-def _mass_diag(pot: Potential):
-    """Diagonal (per-node) mass contribution to the Hessian, ``(n_nodes,)`` or None."""
+def mass_diagonal(pot: Potential):
+    """Diagonal (per-node) inertia + mass-damping part of the Hessian, ``(n_nodes,)`` [mass/time²],
+    or None (statics)."""
     w = None
     if pot.mass is not None:
         w = pot.inertia_weight * pot.mass
@@ -132,7 +134,7 @@ def _mass_diag(pot: Potential):
 def hessian_vp(pot: Potential, x: jax.Array, v: jax.Array) -> jax.Array:
     """``(∂²Π/∂x²)·v``, ``(n_nodes, dim)``, matrix-free."""
     Hv = hvp(pot.psi, x, v, pot.mesh, pot.params)
-    w = _mass_diag(pot)
+    w = mass_diagonal(pot)
     if w is not None:
         Hv = Hv + w[:, None] * v
     if pot.stiffness_damping is not None:
@@ -147,7 +149,7 @@ def element_hessian_vp(pot: Potential, Ke: jax.Array, v: jax.Array) -> jax.Array
     ve = v[mesh.cells].reshape(mesh.n_cells, -1)
     out = jnp.einsum("cij,cj->ci", Ke, ve).reshape(mesh.cells.shape + (-1,))
     Hv = assemble(mesh, out)
-    md = _mass_diag(pot)
+    md = mass_diagonal(pot)
     if md is not None:
         Hv = Hv + md[:, None] * v
     return Hv
@@ -167,7 +169,7 @@ def node_hessian_blocks(pot: Potential, Ke: jax.Array) -> jax.Array:
     blocks = jnp.swapaxes(blocks, 0, 1).reshape(c * k, d, d)
     flat = jnp.concatenate([blocks, jnp.zeros((1, d, d), Ke.dtype)])
     B = flat[mesh.incidence].sum(axis=1)  # (n, d, d)
-    w = _mass_diag(pot)
+    w = mass_diagonal(pot)
     if w is not None:
         B = B + w[:, None, None] * jnp.eye(d, dtype=Ke.dtype)[None]
     return B

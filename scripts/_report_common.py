@@ -1,14 +1,13 @@
 """Helpers shared by ``report_accuracy.py`` and ``report_stability.py`` (not a library module).
 
-Atomic output files, the machine description stamped on every plot, Pareto fronts, and the
-element variants (P1, P2, F-bar) with a clear message when the installed library does not
-offer them yet.
+Atomic output files, the machine description stamped on every plot, Pareto fronts, rates,
+and the element variants (P1, P2, F-bar) as mesh-generator keywords. The problems
+themselves are in :mod:`jaxelastic.benchmarks`.
 """
 
 from __future__ import annotations
 
 import csv
-import inspect
 import io
 import json
 import math
@@ -39,33 +38,14 @@ ELEMENT_NOTES = {
 
 
 class Unavailable(RuntimeError):
-    """An element variant or feature the installed jaxelastic does not offer (yet)."""
+    """An element variant a case is not defined for (the row is skipped, with the reason)."""
 
 
-def element_support() -> tuple[bool, str]:
-    """Whether the mesh generators take ``order=`` and ``formulation=`` (issue 6)."""
-    from jaxelastic import mesh
-
-    params = inspect.signature(mesh.box).parameters
-    if "order" in params and "formulation" in params:
-        return True, ""
-    return False, "P2/F-bar elements are not available in this jaxelastic (no order= keyword)"
-
-
-def make_mesh(generator, *args, element: str = "P1", **kw):
-    """``generator(*args, **kw)`` for the element variant; raises :class:`Unavailable`."""
+def element_kw(element: str) -> dict:
+    """Mesh-generator keywords (``order``, ``formulation``) of an element variant."""
     if element not in ELEMENT_KW:
         raise ValueError(f"element must be one of {sorted(ELEMENT_KW)}, got {element!r}")
-    if element != "P1":
-        ok, why = element_support()
-        if not ok:
-            raise Unavailable(why)
-    try:
-        return generator(*args, **ELEMENT_KW[element], **kw)
-    except (TypeError, NotImplementedError, ValueError) as e:
-        if element == "P1":
-            raise
-        raise Unavailable(f"{element}: {e}") from e
+    return dict(ELEMENT_KW[element])
 
 
 def machine() -> str:

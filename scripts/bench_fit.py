@@ -7,9 +7,10 @@ t = (20 kPa, 0, 0) is used by the fit), E = 1 MPa, ν = 0.3 (tip deflection ≈ 
 
 Timed per linear solver (``cg``: matrix-free block-Jacobi PCG inside jit for Newton and
 adjoint; ``direct``: sparse Cholesky on the host; ``amg``: AMG-preconditioned CG on the
-host; the host solvers' adjoint is polished by PCG to the adjoint tolerance):
+host; in the split, the host solvers' adjoint is a factorisation + solve (direct) or
+AMG-preconditioned SciPy CG to the adjoint tolerance):
 
-* ``forward``: one :func:`jaxelastic.implicit.equilibrium_result` from the rest shape at
+* ``forward``: one :func:`jaxelastic.solve` from the rest shape at
   (E, ν) = (3E*, ν* − 0.15) (Newton to a relative residual 1e-10);
 * ``value_and_grad``: the same solve plus the adjoint, of the loss
   ``‖x*(E, ν) − x_obs‖² / ‖x_obs − X‖²`` (x_obs: the solution at the true parameters);
@@ -85,20 +86,57 @@ def _timed(fn, *args, repeats: int):
     return first, float(np.median(times)), times, out
 
 
+def _amg_cg(host, K, b, rtol: float) -> int:
+    """SciPy CG on the assembled K, preconditioned by the host AMG V-cycle; iterations."""
+    import scipy.sparse.linalg as spla
+
+    n = K.shape[0]
+    count = [0]
+
+    def M(r):
+        count[0] += 1
+        return host.apply(np.asarray(r).reshape(b.shape)).reshape(-1)
+
+    spla.cg(K, b.reshape(-1), rtol=rtol, M=spla.LinearOperator((n, n), matvec=M))
+    return count[0]
+
+
+def _host_adjoint(kind: str, mesh, bc, Ke, rhs, repeats: int):
+    """(median time [s], iterations) of the adjoint solve with a host back end at the
+    solution: factorise (direct) / build the hierarchy (AMG) and solve; AMG as the
+    preconditioner of a SciPy CG to the adjoint tolerance."""
+    import jax.numpy as jnp
+
+    import jaxelastic as je
+
+    host = je.solvers.HostLinearSolver.for_problem(mesh, bc, kind)
+    Ks = np.asarray(0.5 * (Ke + jnp.swapaxes(Ke, 1, 2)))
+    md = np.zeros(mesh.n_nodes)
+    b = np.asarray(rhs)
+    rtol = je.ImplicitAdjoint().rtol
+    ts, its = [], 1
+    for _ in range(max(repeats, 1)):
+        t = time.perf_counter()
+        host.factor(Ks, md)
+        if kind == "direct":
+            host.apply(b)
+        else:
+            its = _amg_cg(host, host.assemble(Ks), b, rtol)
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts)), int(its)
+
+
 def bench_solver(kind: str, mesh, bc, f_bend, x_obs, repeats: int) -> dict:
     """Forward, value_and_grad and the backward split for one linear solver."""
     import jax
     import jax.numpy as jnp
 
     import jaxelastic as je
-    from jaxelastic import implicit
     from jaxelastic import potential as P
     from jaxelastic.materials import Lame, lame
     from jaxelastic.solvers.linear import block_jacobi, cg
-    from jaxelastic.solvers.newton import NewtonSettings, Status, make_linear
 
-    settings = NewtonSettings(rtol=1e-10)
-    linear = make_linear(mesh, bc, kind)
+    solver = je.solvers.bind_solver(je.Newton(rtol=1e-10, linear=kind), mesh, bc)
     X = mesh.points
     scale = jnp.sum((x_obs - X) ** 2)
 
@@ -108,18 +146,18 @@ def bench_solver(kind: str, mesh, bc, f_bend, x_obs, repeats: int) -> dict:
         )
 
     def forward(th):
-        return implicit.equilibrium_result(pot_of(th), bc, X, settings, linear)
+        return je.solve(pot_of(th), bc, x0=X, solver=solver, throw=False)
 
     def loss(th):
-        r = implicit.equilibrium_result(pot_of(th), bc, X, settings, linear)
+        r = je.solve(pot_of(th), bc, x0=X, solver=solver, throw=False)
         return jnp.sum((r.x - x_obs) ** 2) / scale, r
 
     th0 = jnp.array([3.0 * E_TRUE, NU_TRUE - 0.15])
     fwd = jax.jit(forward)
     vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
     f_first, f_warm, f_all, res = _timed(fwd, th0, repeats=repeats)
-    if int(res.status) != Status.SUCCESS:
-        raise RuntimeError(f"{kind}: forward solve failed with status {int(res.status)}")
+    if int(res.status) != je.Status.SUCCESS:
+        raise RuntimeError(f"{kind}: forward solve failed: {je.Status(int(res.status)).name}")
     v_first, v_warm, v_all, ((val, _), g) = _timed(vg, th0, repeats=repeats)
     if not bool(jnp.all(jnp.isfinite(g))):
         raise RuntimeError(f"{kind}: non-finite gradient {g}")
@@ -132,6 +170,7 @@ def bench_solver(kind: str, mesh, bc, f_bend, x_obs, repeats: int) -> dict:
     free = ~bc.mask
     fm = free.astype(x.dtype)
     rhs = fm * 2.0 * (x - x_obs) / scale  # the loss's cotangent of x
+    adj = je.ImplicitAdjoint()
 
     @jax.jit
     def adjoint_cg(pot, Ke, rhs):
@@ -140,21 +179,14 @@ def bench_solver(kind: str, mesh, bc, f_bend, x_obs, repeats: int) -> dict:
         def A(v):
             return fm * P.element_hessian_vp(pot, Ke, fm * v) + (1.0 - fm) * v
 
-        tol = implicit.DEFAULT_ADJOINT.rtol * jnp.linalg.norm(rhs)
-        return cg(A, rhs, M, tol=tol, max_iter=implicit.DEFAULT_ADJOINT.max_iter)
+        tol = adj.rtol * jnp.linalg.norm(rhs)
+        return cg(A, rhs, M, tol=tol, max_iter=adj.max_iter)
 
-    if linear is None:
+    if kind == "cg":
         _, t_adj, _, ares = _timed(adjoint_cg, pot, Ke, rhs, repeats=repeats)
-        adj_its = int(ares.iterations)
+        adj_its = int(ares.stats["iterations"])
     else:
-        Ks = np.asarray(0.5 * (Ke + jnp.swapaxes(Ke, 1, 2)))
-        md = np.zeros(x.shape[0])
-        ts = []
-        for _ in range(max(repeats, 1)):
-            t = time.perf_counter()
-            _, adj_its, _ = linear(Ks, md, np.asarray(rhs), 1e-10)
-            ts.append(time.perf_counter() - t)
-        t_adj, adj_its = float(np.median(ts)), int(adj_its)
+        t_adj, adj_its = _host_adjoint(kind, mesh, bc, Ke, rhs, repeats)
     return dict(
         solver=kind,
         forward_warm=f_warm,
@@ -165,8 +197,8 @@ def bench_solver(kind: str, mesh, bc, f_bend, x_obs, repeats: int) -> dict:
         value_and_grad_all=v_all,
         backward=v_warm - f_warm,
         ratio=v_warm / f_warm,
-        newton_steps=int(res.steps),
-        newton_linear_iterations=int(res.linear_iterations),
+        newton_steps=int(res.stats["steps"]),
+        newton_linear_iterations=int(res.stats["linear_iterations"]),
         element_hessians=t_ke,
         adjoint_solve=t_adj,
         adjoint_iterations=adj_its,
@@ -180,24 +212,20 @@ def bench_fit(mesh, bc, f_bend, f_stretch, obs, linear: str) -> dict:
     the first including compilation, the second warm (same compiled functions)."""
     import jaxelastic as je
     from jaxelastic.fitting import LoadCase, Material, fit
-    from jaxelastic.materials import Lame, lame
-    from jaxelastic.solvers.newton import make_linear
 
-    params = Lame(*lame(E_TRUE, NU_TRUE))
-    host = make_linear(mesh, bc, linear)
     cases = [
         LoadCase(
-            pot=je.Potential(mesh=mesh, params=params, f_ext=f, psi=je.materials.neo_hookean),
+            pot=je.Potential(mesh=mesh, params=None, f_ext=f, psi=je.materials.neo_hookean),
             bc=bc,
             observed=o,
-            linear=host,
         )
         for f, o in zip((f_bend, f_stretch), obs, strict=True)
     ]
+    solver = je.Newton(rtol=1e-11, linear=linear)
     walls = []
     for _ in range(2):
         t = time.perf_counter()
-        r = fit(cases, Material(E=3.0 * E_TRUE, nu=NU_TRUE - 0.15), max_iter=60)
+        r = fit(cases, Material(E=3.0 * E_TRUE, nu=NU_TRUE - 0.15), max_iter=60, solver=solver)
         walls.append(time.perf_counter() - t)
     its = int(r.iterations)
     return dict(
@@ -295,7 +323,6 @@ def main(argv=None) -> int:
 
     import jaxelastic as je
     from jaxelastic.materials import Lame, lame
-    from jaxelastic.solvers.newton import NewtonSettings, solve
 
     n = tuple(int(a) for a in args.n.split(","))
     mesh, bc, f_bend, f_stretch = problem(n)
@@ -303,7 +330,7 @@ def main(argv=None) -> int:
     obs = []
     for f in (f_bend, f_stretch):
         pot = je.Potential(mesh=mesh, params=params, f_ext=f, psi=je.materials.neo_hookean)
-        obs.append(solve(pot, bc, settings=NewtonSettings(rtol=1e-12), linear="direct").x)
+        obs.append(je.solve(pot, bc, solver=je.Newton(rtol=1e-12, linear="direct")).x)
     tip = float(jnp.max(jnp.abs(obs[0][:, 2] - mesh.points[:, 2])))
     print(
         f"mesh {n}: {mesh.n_cells} tets, {mesh.n_nodes} nodes; tip deflection {tip:.4f} m",

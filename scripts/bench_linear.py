@@ -10,10 +10,17 @@ Two 3D problems linearised at rest, isochoric neo-Hookean
   (bending-dominated: the hard case for Jacobi-CG, DESIGN §4).
 
 For each size it times the jitted element Hessians (compile and steady state), the
-sparsity analysis, the assembly, and for each solver the factorisation/setup and the solve
-to ``--rtol``, with the peak resident memory of each stage (psutil, sampled). It also
+sparsity analysis (building a :class:`~jaxelastic.solvers.host.HostLinearSolver`), the
+assembly, and for each back end ``factor`` (assembly + factorisation / AMG setup) and the
+solve to ``--rtol``, with the peak resident memory of each stage (psutil, sampled). It also
 times AMG hierarchy reuse over a sequence of five matrices along a twisting path. Prints a
 table and writes ``bench_linear.json`` (atomically) to ``--out``.
+
+The library's only Krylov loop is the device CG (``jaxelastic.solvers.linear.cg``); the
+host back ends only factorise and apply. To time the host side alone, this measurement
+script has its own small NumPy PCG (:func:`pcg`): the AMG rows run it with one V-cycle
+(``HostLinearSolver.apply``) per iteration, the ``cg-jacobi`` baseline with the inverse
+diagonal; the direct rows are one exact ``apply``.
 
 OpenBLAS threads are capped at 1 unless ``OPENBLAS_NUM_THREADS`` is set: with more
 threads than free cores, OpenBLAS's spinning threads made every CG vector dot ~10x slower
@@ -46,7 +53,7 @@ import psutil  # noqa: E402
 
 import jaxelastic  # noqa: E402
 from jaxelastic.kinematics import det  # noqa: E402
-from jaxelastic.solvers.sparse import SparsityPattern, make_solver  # noqa: E402
+from jaxelastic.solvers.host import HostLinearSolver  # noqa: E402
 
 E_YOUNG, NU = 10.0, 0.3
 MU = E_YOUNG / (2.0 * (1.0 + NU))
@@ -133,9 +140,10 @@ def build_problem(kind: str, n: int):
 
 
 def rhs(K_full, fixed, ud, load):
-    """Right-hand side of the eliminated system: ``b_f = f_f − K_fd u_d``, ``b_d = u_d``."""
+    """Right-hand side of the eliminated system for the free increments:
+    ``b_f = f_f − K_fd u_d``, ``b_d = 0`` (the fixed dofs are known)."""
     b = load - K_full @ np.where(fixed, ud, 0.0)
-    b[fixed] = ud[fixed]
+    b[fixed] = 0.0
     return b
 
 
@@ -149,31 +157,79 @@ def twisted(X: np.ndarray, angle: float) -> np.ndarray:
     return out
 
 
-def run_solver(kind, opts, K, b, mesh, fixed, rtol, pattern):
-    if kind == "amg":
-        opts = dict(opts, pattern=pattern)
-    s = make_solver(kind, np.asarray(mesh.points), fixed, **opts)
-    _, t_up, c_up, m_up = timed(s.update, K)
-    (x, info), t_so, c_so, m_so = timed(s.solve, b, rtol)
-    info = {k: (float(v) if isinstance(v, np.floating) else v) for k, v in info.items()}
+def pcg(K, b, M, rtol: float, maxiter: int = 2000):
+    """Measurement utility: PCG on ``K x = b`` (``(n,)``) to ``‖b − Kx‖ ≤ rtol·‖b‖``.
+
+    Returns ``(x, iterations, converged, relative true residual)``.
+    """
+    nb = float(np.linalg.norm(b))
+    x = np.zeros_like(b)
+    r = b.copy()
+    z = M(r)
+    p = z.copy()
+    rz = float(r @ z)
+    it = 0
+    while it < maxiter and np.linalg.norm(r) > rtol * nb:
+        Kp = K @ p
+        alpha = rz / float(p @ Kp)
+        x += alpha * p
+        r -= alpha * Kp
+        it += 1
+        z = M(r)
+        rz, rz_old = float(r @ z), rz
+        p = z + (rz / rz_old) * p
+    res = float(np.linalg.norm(b - K @ x)) / max(nb, 1e-300)
+    return x, it, bool(res <= 1.01 * rtol), res
+
+
+def host_solve(host: HostLinearSolver, K, b, rtol: float):
+    """Solve with the host back end after :meth:`HostLinearSolver.factor`: one exact
+    ``apply`` (direct) or the script's PCG with one V-cycle per iteration (AMG)."""
+    shape = host.shape
+    if host.exact:
+        x = host.apply(b.reshape(shape), 0).reshape(-1)
+        res = float(np.linalg.norm(b - K @ x)) / max(float(np.linalg.norm(b)), 1e-300)
+        return x, 1, bool(res <= rtol), res
+    return pcg(K, b, lambda r: host.apply(r.reshape(shape), 0).reshape(-1), rtol)
+
+
+def run_solver(kind, opts, Ke, K, b, mesh, fixed, rtol, host=None):
+    """One row: ``kind`` ``"amg"``/``"direct"`` (a HostLinearSolver, ``host`` if given) or
+    ``"cg-jacobi"`` (the script's PCG with the inverse diagonal)."""
+    md = np.zeros(mesh.n_nodes)
+    if kind == "cg-jacobi":
+        t0 = time.perf_counter()
+        inv = 1.0 / K.diagonal()
+        t_up, c_up, m_up = time.perf_counter() - t0, 0.0, 0.0
+        (x, it, ok, res), t_so, c_so, m_so = timed(pcg, K, b, lambda r: inv * r, rtol, 20000)
+        info = {}
+    else:
+        if host is None:
+            host = HostLinearSolver(mesh.cells, mesh.points, fixed.reshape(-1, 3), kind, **opts)
+        status, t_up, c_up, m_up = timed(host.factor, Ke, md, 0)
+        (x, it, ok, res), t_so, c_so, m_so = timed(host_solve, host, K, b, rtol)
+        info = {
+            k: (float(v) if isinstance(v, np.floating) else v) for k, v in host.last_info.items()
+        }
+        info["factor_status"] = int(status)
     return dict(
         setup_s=t_up,
         setup_cpu_s=c_up,
         solve_s=t_so,
         solve_cpu_s=c_so,
         peak_rss_mb=max(m_up, m_so),
+        iterations=it,
+        converged=ok,
+        residual=res,
         **info,
     ), x
 
 
-def reuse_study(mesh, fixed, pattern, params, rtol, b, angles=(0.0, 0.1, 0.2, 0.3, 0.4)):
-    """Total AMG setup+solve time over Hessians at a sequence of twisted states."""
+def reuse_study(mesh, fixed, params, rtol, b, angles=(0.0, 0.1, 0.2, 0.3, 0.4)):
+    """Total AMG factor+solve time over Hessians at a sequence of twisted states."""
     X = np.asarray(mesh.points)
-    mats = []
-    for a in angles:
-        Ke = np.asarray(_hessians_psd(jnp.asarray(twisted(X, a)), mesh, params))
-        mats.append(pattern.assemble(Ke))
-        del Ke
+    kes = [np.asarray(_hessians_psd(jnp.asarray(twisted(X, a)), mesh, params)) for a in angles]
+    md = np.zeros(mesh.n_nodes)
     out = {}
     modes = {
         "rebuild every update": dict(reuse=1),
@@ -181,19 +237,14 @@ def reuse_study(mesh, fixed, pattern, params, rtol, b, angles=(0.0, 0.1, 0.2, 0.
         "frozen hierarchy (reuse=5)": dict(reuse=5, refresh="none"),
     }
     for name, opts in modes.items():
-        s = make_solver("amg", X, fixed, pattern=pattern, **opts)
+        host = HostLinearSolver(mesh.cells, X, fixed.reshape(-1, 3), "amg", **opts)
         steps = []
-        for K in mats:
-            _, t_up, c_up, _ = timed(s.update, K)
-            (_, info), t_so, c_so, _ = timed(s.solve, b, rtol)
+        for Ke in kes:
+            _, t_up, c_up, _ = timed(host.factor, Ke, md, 0)
+            K = host.assemble(Ke)
+            (_, it, ok, _), t_so, c_so, _ = timed(host_solve, host, K, b, rtol)
             steps.append(
-                dict(
-                    setup_s=t_up,
-                    solve_s=t_so,
-                    cpu_s=c_up + c_so,
-                    iterations=info["iterations"],
-                    converged=info["converged"],
-                )
+                dict(setup_s=t_up, solve_s=t_so, cpu_s=c_up + c_so, iterations=it, converged=ok)
             )
         out[name] = dict(
             total_s=sum(st["setup_s"] + st["solve_s"] for st in steps),
@@ -217,18 +268,18 @@ def bench_case(kind, n, args):
     Ke, t, c, m = timed(lambda: _hessians(x0, mesh, params).block_until_ready())
     rec.update(hessians_s=t, hessians_cpu_s=c, hessians_peak_rss_mb=m)
     Ke = np.asarray(Ke)
-    cells = np.asarray(mesh.cells)
-    P, t, c, m = timed(SparsityPattern.build, cells, mesh.n_nodes, 3, fixed)
+    # the sparsity analysis is the construction of a HostLinearSolver (kept for the AMG row)
+    amg, t, c, m = timed(HostLinearSolver, mesh.cells, mesh.points, fixed.reshape(-1, 3), "amg")
+    P = amg.pattern
     rec.update(pattern_s=t, pattern_peak_rss_mb=m, nnz=P.nnz)
     K_full = P.assemble_full(Ke)
     b = rhs(K_full, fixed, ud, load)
     del K_full
     times = []
     for _ in range(3):
-        K, t, c, m = timed(P.assemble, Ke)
+        K, t, c, m = timed(amg.assemble, Ke)
         times.append(t)
     rec.update(assemble_s=min(times), assemble_peak_rss_mb=m)
-    del Ke
     solvers = {}
     runs = [("amg", "amg", {})]
     if mesh.n_dofs <= args.direct_max_dofs:
@@ -239,7 +290,8 @@ def bench_case(kind, n, args):
         runs.append(("cg-jacobi", "cg-jacobi", {}))
     xs = {}
     for name, kind_, opts in runs:
-        res, xs[name] = run_solver(kind_, opts, K, b, mesh, fixed, args.rtol, P)
+        host = amg if kind_ == "amg" else None
+        res, xs[name] = run_solver(kind_, opts, Ke, K, b, mesh, fixed, args.rtol, host)
         solvers[name] = res
         print(
             f"  {kind:10s} n={n:3d} {name:16s} setup {res['setup_s']:8.2f}s  solve "
@@ -255,7 +307,7 @@ def bench_case(kind, n, args):
             )
     rec["solvers"] = solvers
     if kind == "twist" and not args.no_reuse:
-        rec["amg_reuse"] = reuse_study(mesh, fixed, P, params, args.rtol, b)
+        rec["amg_reuse"] = reuse_study(mesh, fixed, params, args.rtol, b)
         for name, r in rec["amg_reuse"].items():
             print(
                 f"  {kind:10s} n={n:3d} AMG {name:28s} total {r['total_s']:7.2f}s "

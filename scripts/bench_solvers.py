@@ -1,11 +1,12 @@
 """Solver benchmark: the JAX-FEM "twist" hyperelasticity problem, a backward-Euler step,
 and the cost of each optional part of a scene.
 
-Twist: unit cube ``box(n, n, n)`` (6n³ tets), face x = 1 clamped, face x = 0 given
-u_x = 0 and half of a 60° rotation about the x axis through (y, z) = (0.5, 0.5); user ψ
-isochoric neo-Hookean ``μ/2 (J^(−2/3) I_C − 3) + κ/2 (J − 1)²`` with E = 10, ν = 0.3,
-κ = E/(3(1 − 2ν)); converged to a relative residual of 1e-8. Each (n, linear solver) runs
-in a fresh subprocess so its peak RSS and cold (compile-including) time are its own.
+Twist (:func:`jaxelastic.benchmarks.twist`): unit cube ``box(n, n, n)`` (6n³ tets), face
+x = 1 clamped, face x = 0 given u_x = 0 and half of a 60° rotation about the x axis through
+(y, z) = (0.5, 0.5); user ψ isochoric neo-Hookean ``μ/2 (J^(−2/3) I_C − 3) + κ/2 (J − 1)²``
+with E = 10, ν = 0.3, κ = E/(3(1 − 2ν)); converged to a relative residual of 1e-8. Each
+(n, linear solver) runs in a fresh subprocess so its peak RSS and cold (compile-including)
+time are its own.
 
 Reported per run: cold wall time (first solve, including tracing and XLA compilation),
 warm wall time (second solve, same compiled code), Newton and linear iterations, peak RSS,
@@ -46,47 +47,23 @@ ELEMENTS = {
 
 
 def _twist_problem(n: int, element: str = "p1"):
-    import jax.numpy as jnp
+    """(mesh, pot, bc) of :func:`jaxelastic.benchmarks.twist` for an element variant."""
+    from jaxelastic import benchmarks
 
-    import jaxelastic as je
-    from jaxelastic import loads
-
-    mesh = je.box(n, n, n, **ELEMENTS[element])
-    E, nu = 10.0, 0.3
-    mu = E / (2 * (1 + nu))
-    kappa = E / (3 * (1 - 2 * nu))
-    th = np.pi / 3
-
-    def u(X):
-        y, z = X[:, 1], X[:, 2]
-        return np.stack(
-            [
-                0 * y,
-                (0.5 + (y - 0.5) * np.cos(th) - (z - 0.5) * np.sin(th) - y) / 2,
-                (0.5 + (y - 0.5) * np.sin(th) + (z - 0.5) * np.cos(th) - z) / 2,
-            ],
-            1,
-        )
-
-    bc = loads.combine(
-        loads.fix(mesh, loads.nodes_on_plane(mesh, 0, 1.0)),
-        loads.fix(mesh, loads.nodes_on_plane(mesh, 0, 0.0), displacement=u),
-    )
-
-    def psi_iso(F, p):
-        J = je.kinematics.det(F)
-        return p.mu / 2 * (J ** (-2.0 / 3.0) * jnp.sum(F * F) - 3) + p.lam / 2 * (J - 1) ** 2
-
-    pot = je.Potential(mesh=mesh, params=je.Lame(mu, kappa), psi=psi_iso)
-    return mesh, pot, bc
+    b = benchmarks.twist(n, **ELEMENTS[element])
+    return b.mesh, b.pot, b.bc
 
 
-def _phase_split(pot, x, bc, linear):
-    """Time the parts of one Newton iteration at configuration x (warm, median of 3)."""
+def _phase_split(pot, x, bc, host):
+    """Time the parts of one Newton iteration at configuration x (warm, median of 3).
+
+    ``host``: None (device block-Jacobi CG) or a ``je.solvers.HostLinearSolver``.
+    """
     import jax
     import jax.numpy as jnp
 
     from jaxelastic import potential as P
+    from jaxelastic.energy import assemble
     from jaxelastic.solvers.linear import block_jacobi, cg
 
     vg = jax.jit(lambda pot, x: (P.value(pot, x), P.gradient(pot, x)))
@@ -106,7 +83,7 @@ def _phase_split(pot, x, bc, linear):
     free = ~bc.mask
     fm = free.astype(x.dtype)
     rhs = -g * fm
-    if linear is None:
+    if host is None:
         mesh = pot.mesh
 
         @jax.jit
@@ -114,21 +91,23 @@ def _phase_split(pot, x, bc, linear):
             def H(v):
                 ve = v[mesh.cells].reshape(mesh.n_cells, -1)
                 out = jnp.einsum("cij,cj->ci", Ke, ve).reshape(mesh.cells.shape + (-1,))
-                from jaxelastic.energy import assemble
-
                 return fm * assemble(mesh, out * 1.0) + (1 - fm) * v
 
             M = block_jacobi(P.node_hessian_blocks(pot, Ke), free)
             return cg(lambda v: H(fm * v), rhs, M, tol=1e-6 * jnp.linalg.norm(rhs), max_iter=5000)
 
         t_lin, res = timeit(lin, Ke, rhs)
-        its = int(res.iterations)
+        its = int(res.stats["iterations"])
     else:
+        # host back end: assemble + factorise (direct) / build the hierarchy (AMG), then one
+        # application (the full solve for direct, one V-cycle for AMG)
         Ke_np = np.asarray(Ke)
         md = np.zeros(x.shape[0])
         t0 = time.perf_counter()
-        _, its, _ = linear(Ke_np, md, np.asarray(rhs), 1e-6)
+        host.factor(Ke_np, md)
+        host.apply(np.asarray(rhs))
         t_lin = time.perf_counter() - t0
+        its = 1
     return dict(energy_grad=t_vg, element_hessians=t_ke, linear_solve=t_lin, linear_its=int(its))
 
 
@@ -136,17 +115,17 @@ def worker(n: int, solver: str, element: str = "p1") -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from jaxelastic.solvers.host import HostLinearSolver
-    from jaxelastic.solvers.newton import NewtonSettings, solve
+    import jaxelastic as je
 
     mesh, pot, bc = _twist_problem(n, element)
-    linear = None if solver == "cg" else HostLinearSolver.for_problem(mesh, bc, solver)
-    settings = NewtonSettings(rtol=1e-8, max_steps=50)
+    linear = je.solvers.bind_linear(solver, mesh, bc)
+    newton = je.Newton(rtol=1e-8, max_steps=50, linear=linear)
     t0 = time.perf_counter()
-    solve(pot, bc, settings=settings, linear=linear, throw=False)
+    je.solve(pot, bc, solver=newton, throw=False)
     t_cold = time.perf_counter() - t0
-    warm = solve(pot, bc, settings=settings, linear=linear, throw=False)
-    phases = _phase_split(pot, warm.x, bc, linear)
+    warm = je.solve(pot, bc, solver=newton, throw=False)
+    host = None if solver == "cg" else je.solvers.HostLinearSolver.for_problem(mesh, bc, solver)
+    phases = _phase_split(pot, warm.x, bc, host)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # MiB on Linux
     return dict(
         n=n,
@@ -157,10 +136,10 @@ def worker(n: int, solver: str, element: str = "p1") -> dict:
         solver=solver,
         status=int(warm.status),
         cold_s=t_cold,
-        warm_s=float(warm.wall_time),
-        newton=int(warm.steps),
-        linear_its=int(warm.linear_iterations),
-        residual=float(warm.residual),
+        warm_s=float(warm.stats["wall_time"]),
+        newton=int(warm.stats["steps"]),
+        linear_its=int(warm.stats["linear_iterations"]),
+        residual=float(warm.stats["residual"]),
         peak_rss_mib=rss,
         phases=phases,
     )
@@ -175,7 +154,6 @@ def be_step_worker() -> dict:
 
     import jaxelastic as je
     from jaxelastic import dynamics, loads, materials
-    from jaxelastic.solvers.newton import make_linear
 
     mesh = je.box(20, 3, 3, size=(2.0, 0.25, 0.25))
     params = je.Lame(*je.lame(1e7, 0.3))
@@ -192,19 +170,20 @@ def be_step_worker() -> dict:
         x0 = mesh.points if kw["f_ext"] is not None else mesh.points * 1.01
         st = dynamics.init_state(x0)
         integ = dynamics.Integrator(h=0.02)
-        step = jax.jit(dynamics.step, static_argnames=("integ", "settings", "linear"))
-        linear = make_linear(mesh, bc, "auto")  # what the default scene uses
+        step = jax.jit(dynamics.step, static_argnames=("integ", "solver"))
+        # what the default scene uses: "auto", bound once
+        solver = je.Newton(linear=je.solvers.bind_linear("auto", mesh, bc))
         t0 = time.perf_counter()
-        st1, r = step(base, st, bc, integ, linear=linear)
+        st1, r = step(base, st, bc, integ, solver=solver)
         jax.block_until_ready(st1)
         cold = time.perf_counter() - t0
         ts = []
         for _ in range(5):
             t0 = time.perf_counter()
-            st1, r = step(base, st, bc, integ, linear=linear)
+            st1, r = step(base, st, bc, integ, solver=solver)
             jax.block_until_ready(st1)
             ts.append(time.perf_counter() - t0)
-        out[name] = dict(cold_s=cold, warm_s=float(np.median(ts)), newton=int(r.steps))
+        out[name] = dict(cold_s=cold, warm_s=float(np.median(ts)), newton=int(r.stats["steps"]))
     return out
 
 

@@ -107,15 +107,14 @@ class Beam:
 
     def solve(self, load, E, nu, labels=None):
         """Equilibrium positions ``(n_nodes, dim)`` at (E, ν) (per-cell via ``labels``)."""
-        from jaxelastic.solvers.newton import NewtonSettings, solve
+        import jaxelastic as je
 
         if labels is not None:
             E, nu = np.asarray(E)[labels], np.asarray(nu)[labels]
-        res = solve(
+        res = je.solve(
             self.pot(load, self.params(E, nu)),
             self.bc,
-            settings=NewtonSettings(rtol=1e-12),
-            linear="direct",
+            solver=je.Newton(rtol=1e-12, linear="direct"),
         )
         return np.asarray(res.x)
 
@@ -139,11 +138,11 @@ class Beam:
 
 
 def _fit(cases, E0=3.0 * E_TRUE, nu0=NU_TRUE - 0.15, **kw):
+    import jaxelastic as je
     from jaxelastic.fitting import Material, fit
-    from jaxelastic.solvers.newton import NewtonSettings
 
     kw.setdefault("max_iter", 80)
-    kw.setdefault("settings", NewtonSettings(rtol=1e-11))
+    kw.setdefault("solver", je.Newton(rtol=1e-11))
     return fit(cases, Material(E0, nu0), **kw)
 
 
@@ -152,7 +151,7 @@ def _errs(E, nu, E_true=E_TRUE, nu_true=NU_TRUE):
 
 
 def _markers(beam: Beam, fraction: float, seed: int = 0):
-    from jaxelastic._scene_fit import choose_markers
+    from jaxelastic.fitting import choose_markers
 
     return choose_markers(np.asarray(beam.bc.mask), fraction, seed)
 
@@ -197,7 +196,7 @@ def study_recovery(sizes: dict, log) -> list:
 def study_no_inverse_crime(fit_sizes: dict, target: tuple, log) -> dict:
     """``fit_sizes``: element order → list of fitting meshes; ``target``: the P2 mesh of
     the targets (nested: every fitting-mesh node is a target-mesh node)."""
-    from jaxelastic._scene_fit import nested_nodes
+    from jaxelastic.fitting import nested_nodes
 
     fine = Beam(target, order=2)
     obs_fine = {c: fine.solve(c, E_TRUE, NU_TRUE) for c in ("bend", "stretch")}

@@ -44,10 +44,8 @@ import sys
 import time
 from pathlib import Path
 
+import _report_common as rc
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import _report_common as rc  # noqa: E402
 
 ALL_MODELS = (
     "stable_neo_hookean_log",
@@ -67,27 +65,28 @@ G = np.array([0.0, 0.0, -9.81])
 
 
 def _settings(**kw):
-    from jaxelastic.solvers.newton import NewtonSettings
+    """The report's Newton solver (``je.Newton``) with ``kw`` overriding its defaults."""
+    import jaxelastic as je
 
     # forces of the relax scenes are ~1e3 N with a round-off floor ~1e-11 N (atol); a random
     # start can need ~200 Newton iterations in its first step (tests/test_robustness.py)
     base = dict(max_steps=400, atol=1e-8)
     base.update(kw)
-    return NewtonSettings(**base)
+    return je.Newton(**base)
 
 
 @functools.cache
 def _step_fn():
-    """``step(base, state, bc, h, settings, method)`` jitted with h traced, so one compile
-    serves every time step size of a (mesh, material, integrator)."""
+    """``step(base, state, bc, h, solver, method)`` jitted; ``h`` is static (one compile
+    per time step size: ``je.dynamics.step`` checks ``h > 0`` in Python)."""
     import jax
 
     from jaxelastic import dynamics as D
 
-    def step(base, state, bc, h, settings, method):
-        return D.step(base, state, bc, D.Integrator(h, method), settings)
+    def step(base, state, bc, h, solver, method):
+        return D.step(base, state, bc, D.Integrator(h, method), solver=solver)
 
-    return jax.jit(step, static_argnames=("settings", "method"))
+    return jax.jit(step, static_argnames=("h", "solver", "method"))
 
 
 @dataclasses.dataclass
@@ -139,13 +138,14 @@ def _run_dynamic(base, x0, bc, h, method, n_steps, settings, energy_base=None) -
     import jax.numpy as jnp
 
     from jaxelastic import dynamics as D
-    from jaxelastic.solvers.newton import Status
+    from jaxelastic.solvers import Status
 
     step = _step_fn()
     rest = D.init_state(base.mesh.points)
+    h = float(h)
     compile_s = _compile_time(
-        _warm_key(base, method, settings),
-        lambda: jax.block_until_ready(step(base, rest, bc, jnp.asarray(h), settings, method)),
+        _warm_key(base, (method, h), settings),
+        lambda: jax.block_until_ready(step(base, rest, bc, h, settings, method)),
     )
     state = D.init_state(jnp.asarray(x0))
     eb = base if energy_base is None else energy_base
@@ -155,12 +155,12 @@ def _run_dynamic(base, x0, bc, h, method, n_steps, settings, energy_base=None) -
     reason = ""
     silent = False
     for _ in range(n_steps):
-        new, res = step(base, state, bc, jnp.asarray(h), settings, method)
+        new, res = step(base, state, bc, h, settings, method)
         jax.block_until_ready(new)
         st = Status(int(res.status))
         statuses.append(st.name)
-        newton.append(int(res.steps))
-        cuts += int(res.line_search_cutbacks)
+        newton.append(int(res.stats["steps"]))
+        cuts += int(res.stats["line_search_cutbacks"])
         finite = bool(np.isfinite(np.asarray(new.x)).all())
         if st != Status.SUCCESS:
             reason = f"{st.name}: {res.reason}"
@@ -437,49 +437,49 @@ def h_scenes(models, integrators, hs, n_steps):
 
 
 def _run_static(pot, bc, steps, min_increment=1.0 / 256) -> Outcome:
-    from jaxelastic.solvers.continuation import solve_incremental
-    from jaxelastic.solvers.newton import Status, make_linear, solve
+    """Load stepping (``je.solve_incremental``) of ``pot`` with Dirichlet data ``bc`` or a
+    load path ``s -> Dirichlet``; the warm-up solves the unloaded problem once."""
+    import jaxelastic as je
 
-    cuts, accepted_newton = [0], []
+    cuts = [0]
+    path = bc if callable(bc) else None
     bc0 = bc(0.0) if callable(bc) else bc
     pot0 = pot if pot.f_ext is None else pot.replace(f_ext=0.0 * pot.f_ext)
+    bound = je.solvers.bind_linear("direct", pot.mesh, bc0)
+    solver = _settings(max_steps=60, linear=bound)
     compile_s = _compile_time(
         _warm_key(pot, "static", _settings(max_steps=60)),
-        lambda: solve(
-            pot0,
-            bc0,
-            settings=_settings(max_steps=60),
-            linear=make_linear(pot.mesh, bc0, "direct"),
-            throw=False,
-        ),
+        lambda: je.solve(pot0, bc0, solver=solver, throw=False),
     )
 
     def cb(s, res):
-        cuts[0] += int(res.line_search_cutbacks)
+        cuts[0] += int(res.stats["line_search_cutbacks"])
 
     t0 = time.perf_counter()
-    r = solve_incremental(
+    r = je.solve_incremental(
         pot,
-        bc,
+        bc0,
         steps=steps,
         min_increment=min_increment,
-        settings=_settings(max_steps=60),
-        linear="direct",
+        path=path,
+        solver=solver,
         throw=False,
         callback=cb,
     )
     wall = time.perf_counter() - t0
-    statuses = [h["status"] for h in r.history]
-    accepted_newton = [h["newton_steps"] for h in r.history]
+    incs = r.stats["increments"]
+    statuses = [h["status"] for h in incs]
+    accepted_newton = [int(h["steps"]) for h in incs]
     x = np.asarray(r.x)
     silent = not np.isfinite(x).all()
     reason = ""
-    if not r.ok:
-        st = Status(r.status)
-        reason = f"{st.name} at load factor {r.load_factor:.3g}: {r.last.reason}"
+    load_factor = float(r.stats["load_factor"])
+    if not bool(r.ok):
+        st = je.Status(int(r.status))
+        reason = f"{st.name} at load factor {load_factor:.3g}: {r.reason}"
     o = Outcome("", reason, statuses, accepted_newton, cuts[0], [], x, wall, silent, compile_s)
-    o.load_factor = r.load_factor
-    o.increments = len(r.history)
+    o.load_factor = load_factor
+    o.increments = len(incs)
     return _loaded_outcome(o)
 
 
@@ -614,6 +614,39 @@ def _guard(fn, *args, **kw) -> Outcome:
 # --------------------------------------------------------------------------------------
 
 
+def _scene_group(s, quick, models, integ, starts, shapes) -> list[dict]:
+    """The rows of one scene group (``relax``, ``collapse``, ``drop``, ...) at the quick or
+    full settings; final shapes are appended to ``shapes``."""
+    loaded = (
+        ("stable_neo_hookean_log", "neo_hookean")
+        if quick
+        else ("stable_neo_hookean_log", "fixed_corotated", "neo_hookean", "stvk")
+    )
+    if s == "relax":
+        st = starts or ("crush", "reflect", "inflate", "random")
+        return relax_scenes(models, integ, st, 15 if quick else 30, shapes)
+    if s == "collapse":
+        return collapse_scenes(models, ("backward_euler",), 10, shapes)
+    if s == "drop":
+        nus = (0.499,) if quick else (0.45, 0.49, 0.499)
+        return drop_scenes(loaded, integ, nus, 10 if quick else 30)
+    if s == "stiffness":
+        Es = (1e3, 1e6, 1e9) if quick else (1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9)
+        return stiffness_scenes(loaded, Es)
+    if s == "h":
+        hs = (1e-4, 1e-2, 1.0) if quick else (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
+        return h_scenes(loaded, integ, hs, 3 if quick else 5)
+    if s == "twist":
+        tw = ("stable_neo_hookean_log",)
+        if not quick:
+            tw += ("fixed_corotated", "corotated", "neo_hookean", "stvk")
+        return twist_scenes(tw, shapes, increments=16)
+    sm = ("stable_neo_hookean_log",)
+    if not quick:
+        sm += ("fixed_corotated", "neo_hookean")
+    return sheet_scenes(sm, integ, 10 if quick else 40, shapes)  # "sheet"
+
+
 def run(
     out="out/report_stability",
     *,
@@ -645,47 +678,8 @@ def run(
         raise ValueError(f"unknown scene group(s) {bad}; choose from {all_scenes}")
     rows, shapes = [], []
     t0 = time.perf_counter()
-    n_relax = 15 if quick else 30
-    loaded = (
-        ("stable_neo_hookean_log", "neo_hookean")
-        if quick
-        else ("stable_neo_hookean_log", "fixed_corotated", "neo_hookean", "stvk")
-    )
     for s in chosen:
-        if s == "relax":
-            st = starts or ("crush", "reflect", "inflate", "random")
-            rows += relax_scenes(models, integ, st, n_relax, shapes)
-        elif s == "collapse":
-            rows += collapse_scenes(models, ("backward_euler",), 10, shapes)
-        elif s == "drop":
-            nus = (0.499,) if quick else (0.45, 0.49, 0.499)
-            rows += drop_scenes(loaded, integ, nus, 10 if quick else 30)
-        elif s == "stiffness":
-            Es = (1e3, 1e6, 1e9) if quick else (1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9)
-            rows += stiffness_scenes(loaded, Es)
-        elif s == "h":
-            hs = (1e-4, 1e-2, 1.0) if quick else (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
-            rows += h_scenes(loaded, integ, hs, 3 if quick else 5)
-        elif s == "twist":
-            tw = (
-                ("stable_neo_hookean_log",)
-                if quick
-                else (
-                    "stable_neo_hookean_log",
-                    "fixed_corotated",
-                    "corotated",
-                    "neo_hookean",
-                    "stvk",
-                )
-            )
-            rows += twist_scenes(tw, shapes, increments=16)
-        elif s == "sheet":
-            sm = (
-                ("stable_neo_hookean_log",)
-                if quick
-                else ("stable_neo_hookean_log", "fixed_corotated", "neo_hookean")
-            )
-            rows += sheet_scenes(sm, integ, 10 if quick else 40, shapes)
+        rows += _scene_group(s, quick, models, integ, starts, shapes)
         if verbose:
             _print_rows([r for r in rows if not r.get("_printed")])
             for r in rows:

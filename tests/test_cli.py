@@ -10,7 +10,7 @@ import pytest
 from _common import TINY_SCENE
 
 from jaxelastic import cli
-from jaxelastic.scenes import apply_overrides
+from jaxelastic.scene import apply_overrides
 
 # the same tiny static scene as in test_scenes.py (same shapes and settings: no recompile)
 TINY = TINY_SCENE

@@ -16,10 +16,11 @@ import numpy as np
 import pytest
 
 import jaxelastic as je
+from jaxelastic import Newton, Status
 from jaxelastic import dynamics as D
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic.solvers.newton import NewtonSettings, Status, make_linear
+from jaxelastic.solvers import bind_linear
 
 MU, LAM = (float(v) for v in M.lame(1.0e4, 0.3))
 PARAMS = M.Lame(MU, LAM)
@@ -27,7 +28,7 @@ RHO = 1.0e4  # heavy enough that h = 0.05 … 0.005 resolves the mesh modes (ωh
 # atol: the round-off floor of the residual is ~eps·(m/h²)·|x| (3e-9 at h = 0.005), and
 # steps that start from the inertial predictor have a tiny initial residual, so a purely
 # relative tolerance could fall below it
-SETTINGS = NewtonSettings(rtol=1e-10, atol=1e-7)
+SETTINGS = Newton(rtol=1e-10, atol=1e-7)
 H0 = 0.05
 BE = D.Integrator(H0)
 
@@ -35,7 +36,7 @@ BE = D.Integrator(H0)
 @functools.partial(jax.jit, static_argnames=("method",))
 def _step_h(base, state, bc, h, method):
     """One step with a *traced* time step (one compile for every h)."""
-    return D.step(base, state, bc, D.Integrator(h, method), SETTINGS)
+    return D.step(base, state, bc, D.Integrator(h, method), solver=SETTINGS)
 
 
 def _run(base, state, bc, h, n, method):
@@ -95,9 +96,9 @@ def test_energy_nonincreasing_backward_euler(mesh, base, clamp):
         clamp,
         BE,
         40,
-        settings=SETTINGS,
+        solver=SETTINGS,
         progress=False,
-        callback=lambda s, r: states.append(s),
+        callback=lambda s, r, rec: states.append(s),
     )
     assert len(stats) == 40 and all(s["status"] == "SUCCESS" for s in stats)
     E = _energies(base, states)
@@ -213,9 +214,9 @@ def test_time_dependent_dirichlet_simulate(mesh, base):
         bc,
         BE,
         12,
-        settings=SETTINGS,
+        solver=SETTINGS,
         progress=False,
-        callback=lambda s, r: seen.append(s),
+        callback=lambda s, r, rec: seen.append(s),
     )
     assert [round(s["t"], 12) for s in stats] == [round((k + 1) * H0, 12) for k in range(12)]
     for s in seen:
@@ -238,18 +239,18 @@ def test_rollout_under_jit_matches_simulate(mesh, base):
         bc,
         BE,
         12,
-        settings=SETTINGS,
+        solver=SETTINGS,
         progress=False,
-        callback=lambda s, r: xs.append(np.asarray(s.x)),
+        callback=lambda s, r, rec: xs.append(np.asarray(s.x)),
     )
     # the same linear solver as simulate's default (sparse Cholesky through a callback)
-    linear = make_linear(mesh, bc(0.0), "auto")
-    assert linear is not None
-    roll = jax.jit(D.rollout, static_argnames=("bc_fn", "integ", "n_steps", "settings", "linear"))
-    final, (pos, status, steps, lin) = roll(base, st0, bc, BE, 12, SETTINGS, linear)
-    assert (np.asarray(status) == Status.SUCCESS).all()
-    assert (np.asarray(steps) >= 1).all()
-    np.testing.assert_allclose(np.asarray(pos), np.stack(xs), rtol=0, atol=1e-12)
+    linear = bind_linear("auto", mesh, bc(0.0))
+    assert isinstance(linear, je.Direct) and linear.is_bound
+    roll = jax.jit(D.rollout, static_argnames=("bc", "integ", "n_steps", "solver"))
+    final, traj = roll(base, st0, bc, BE, 12, solver=SETTINGS.replace(linear=linear))
+    assert (np.asarray(traj.status) == Status.SUCCESS).all()
+    assert (np.asarray(traj.stats["steps"]) >= 1).all()
+    np.testing.assert_allclose(np.asarray(traj.frames), np.stack(xs), rtol=0, atol=1e-12)
     np.testing.assert_allclose(float(final.t), 12 * H0, rtol=1e-12)
 
 
@@ -263,9 +264,9 @@ def test_rayleigh_damping_dissipates_faster(mesh, base, clamp, damping):
         clamp,
         BE,
         20,
-        settings=SETTINGS,
+        solver=SETTINGS,
         progress=False,
-        callback=lambda s, r: plain.append(s),
+        callback=lambda s, r, rec: plain.append(s),
     )
     D.simulate(
         base,
@@ -273,9 +274,9 @@ def test_rayleigh_damping_dissipates_faster(mesh, base, clamp, damping):
         clamp,
         D.Integrator(H0, **damping),
         20,
-        settings=SETTINGS,
+        solver=SETTINGS,
         progress=False,
-        callback=lambda s, r: damped.append(s),
+        callback=lambda s, r, rec: damped.append(s),
     )
     Ep, Ed = _energies(base, plain), _energies(base, damped)
     assert np.all(np.diff(Ed) <= 1e-10 * Ed[0])

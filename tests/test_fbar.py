@@ -12,14 +12,13 @@ from _common import MODEL_DIMS, TINY_SCENE
 from test_p2 import _affine_patch, check_derivatives, linear_solve
 
 import jaxelastic as je
+from jaxelastic import benchmarks as bm
 from jaxelastic import loads as L
-from jaxelastic import materials, scenes
+from jaxelastic import materials, scene
 from jaxelastic.io import cell_fields
 from jaxelastic.kinematics import b_bar, det, f_bar
 from jaxelastic.mesh import boundary_nodes
 from jaxelastic.potential import Potential
-from jaxelastic.solvers.continuation import solve_incremental
-from jaxelastic.solvers.newton import _min_J
 
 # ------------------------------------------------------------------------- the F̄ maps
 
@@ -180,8 +179,11 @@ def test_inversion_inside_a_patch_is_infinite_energy_and_seen_by_min_J():
     assert not np.isnan(W).any() and np.isinf(W).any()
     assert float(je.energy(materials.neo_hookean, x, m, p)) == np.inf
     assert np.isfinite(float(je.energy(materials.stable_neo_hookean, x, m, p)))
-    pot = Potential(mesh=m, params=p, psi=materials.neo_hookean)
-    assert float(_min_J(pot, x)) < 0  # require_positive_J sees the inverted sub-element
+    # require_positive_J sees the inverted sub-element although stable neo-Hookean is finite
+    pot = Potential(mesh=m, params=p, psi=materials.stable_neo_hookean)
+    newton = je.Newton(require_positive_J=True, linear="cg")
+    res = je.solve(pot, L.no_dirichlet(m), x0=x, solver=newton, throw=False)
+    assert je.Status(int(res.status)) == je.Status.INVERTED
 
 
 def test_cell_fields_use_f_bar():
@@ -203,7 +205,7 @@ def test_scene_mesh_order_and_formulation():
     ):
         s = copy.deepcopy(TINY_SCENE)
         s["mesh"].update(order=order, formulation=form)
-        b = scenes.build(s)
+        b = scene.build(s)
         assert (b.mesh.element, b.mesh.formulation) == (element, form)
         np.testing.assert_allclose(np.asarray(b.potential.f_ext).sum(axis=0), [0.0, -10.0])
     for key, bad, msg in (
@@ -212,23 +214,20 @@ def test_scene_mesh_order_and_formulation():
     ):
         s = copy.deepcopy(TINY_SCENE)
         s["mesh"][key] = bad
-        with pytest.raises(scenes.SceneError, match=msg):
-            scenes.build(s)
+        with pytest.raises(scene.SceneError, match=msg):
+            scene.build(s)
 
 
 # ------------------------------------------------------------------ locking benchmarks
 
 
 def _cook_linear(n, **kw):
-    """Nearly incompressible linear Cook (plane strain, G = 0.375, λ = 7500, total shear 1):
+    """Nearly incompressible linear Cook (:func:`jaxelastic.benchmarks.cook_incompressible`):
     vertical displacement at the mid-point (48, 52) of the loaded edge (ref 16.43)."""
-    m = je.cook_membrane(n, **kw)
-    fac = L.facets_where(m, lambda X: np.abs(X[:, 0] - 48.0) < 1e-9)
-    f = L.traction_load(m, fac, [0.0, 1.0 / 16.0])
-    bc = L.fix(m, L.nodes_on_plane(m, 0, 0.0))
-    x = linear_solve(materials.linear, m, je.Lame(0.375, 7500.0), bc, f)
-    i = int(np.argmin(np.sum((np.asarray(m.points) - [48.0, 52.0]) ** 2, axis=1)))
-    return float(x[i, 1] - m.points[i, 1])
+    b = bm.cook_incompressible(n, **kw)
+    x = linear_solve(b.psi, b.mesh, b.params, b.bc, np.asarray(b.pot.f_ext))
+    (i,) = b.probes["point"]
+    return float(x[i, 1] - b.mesh.points[i, 1])
 
 
 def test_cook_linear_nearly_incompressible_bbar():
@@ -239,20 +238,13 @@ def test_cook_linear_nearly_incompressible_bbar():
 
 
 def _cook_neo_hookean(n, **kw):
-    """de Souza Neto et al. 1996: plane strain neo-Hookean, G = 80.1938, K = 40.0942e4,
-    total shear 100 on x = 48: vertical displacement of the corner (48, 60) (ref 6.91)."""
-    m = je.cook_membrane(n, **kw)
-    G, K = 80.1938, 40.0942e4
-    fac = L.facets_where(m, lambda X: np.abs(X[:, 0] - 48.0) < 1e-9)
-    f = L.traction_load(m, fac, [0.0, 100.0 / 16.0])
-    bc = L.fix(m, L.nodes_on_plane(m, 0, 0.0))
-    pot = Potential(
-        mesh=m, params=je.Lame(G, K - 2 * G / 3), f_ext=jnp.asarray(f), psi=materials.neo_hookean
-    )
-    res = solve_incremental(pot, bc, steps=4)
-    assert res.ok
-    i = int(np.argmin(np.sum((np.asarray(m.points) - [48.0, 60.0]) ** 2, axis=1)))
-    return float(res.x[i, 1] - m.points[i, 1])
+    """de Souza Neto et al. 1996 (:func:`jaxelastic.benchmarks.cook_neo_hookean`): vertical
+    displacement of the corner (48, 60) (ref 6.91), in 4 load increments."""
+    b = bm.cook_neo_hookean(n, **kw)
+    res = je.solve_incremental(b.pot, b.bc, steps=4)
+    assert bool(res.ok)
+    (i,) = b.probes["point"]
+    return float(res.x[i, 1] - b.mesh.points[i, 1])
 
 
 def test_cook_neo_hookean_p2_fbar_coarse():

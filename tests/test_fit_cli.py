@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from jaxelastic import cli
-from jaxelastic._scene_fit import choose_markers, nested_nodes
+from jaxelastic.fitting import choose_markers, nested_nodes
 from jaxelastic.mesh import box, rectangle
-from jaxelastic.scenes import SceneError, load_scene
+from jaxelastic.scene import SceneError, load_scene
 
 TINY_FIT = """
 name = "tinyfit"
@@ -185,7 +185,7 @@ def test_fit_without_fit_section_is_refused(tmp_path, capsys):
 
 
 def test_empty_region_is_named(tmp_path):
-    from jaxelastic._scene_fit import run_fit
+    from jaxelastic.scene import run_fit
 
     p = _write(tmp_path, TINY_FIT % ('target = { E = 1.0, nu = 0.3 }\nregions = ["x > 9"]', ""))
     with pytest.raises(SceneError, match=r"\[fit\]\.regions\[0\] contains no cell"):
@@ -193,7 +193,7 @@ def test_empty_region_is_named(tmp_path):
 
 
 def test_bad_observation_file_is_named(tmp_path):
-    from jaxelastic._scene_fit import run_fit
+    from jaxelastic.scene import run_fit
 
     np.save(tmp_path / "a.npy", np.zeros((5, 2)))
     np.save(tmp_path / "b.npy", np.zeros((5, 2)))

@@ -517,3 +517,114 @@ def test_cell_fields_is_jittable_with_mesh_argument():
     out = cell_fields(materials.stvk, x, mesh, materials.Lame(1.0, 1.0))
     total = float(np.sum(out["energy_density"] * np.asarray(mesh.volumes)))
     assert total == pytest.approx(float(f(x, mesh)), rel=1e-12)
+
+
+# ---- atomic writer and JSON ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("exc", [RuntimeError("disk full"), KeyboardInterrupt()])
+def test_write_atomic_failure_keeps_old_file_and_leaves_no_temp(tmp_path, exc):
+    path = tmp_path / "data.txt"
+    path.write_text("old")
+    seen = []
+
+    def write(tmp):
+        seen.append(tmp)
+        assert os.path.dirname(tmp) == str(tmp_path)  # same directory: os.replace is atomic
+        with open(tmp, "w") as fh:
+            fh.write("partial")
+        raise exc
+
+    with pytest.raises(type(exc)):
+        je.io.write_atomic(path, write)
+    assert path.read_text() == "old"
+    assert sorted(os.listdir(tmp_path)) == ["data.txt"]
+    assert seen and not os.path.exists(seen[0])
+
+
+def test_write_atomic_creates_and_replaces(tmp_path):
+    path = tmp_path / "new.txt"
+
+    def write(text):
+        def fn(tmp):
+            with open(tmp, "w") as fh:
+                fh.write(text)
+
+        return fn
+
+    je.io.write_atomic(str(path), write("one"))
+    assert path.read_text() == "one"
+    assert os.stat(path).st_mode & 0o777 == 0o644
+    je.io.write_atomic(path, write("two"))
+    assert path.read_text() == "two"
+    assert sorted(os.listdir(tmp_path)) == ["new.txt"]
+
+
+def test_to_jsonable_converts_numpy_jax_namedtuples_enums_paths():
+    import enum
+    import json
+    import pathlib
+    from typing import NamedTuple
+
+    import jax.numpy as jnp
+
+    class Pair(NamedTuple):
+        a: int
+        b: float
+
+    class Color(enum.Enum):
+        RED = 1
+
+    obj = {
+        "f": np.float32(1.5),
+        "i": np.int64(3),
+        "b": np.bool_(True),
+        "arr": np.array([[1.0, np.nan], [np.inf, -2.0]]),
+        "jax": jnp.arange(3),
+        "jax_scalar": jnp.asarray(2.5),
+        "pair": Pair(1, float("nan")),
+        "status": je.Status.MAX_STEPS,
+        "color": Color.RED,
+        "path": pathlib.Path("/tmp/x"),
+        "tuple": (1, "s", None),
+        7: "int key",
+        Color.RED: "enum key",
+    }
+    out = je.io.to_jsonable(obj)
+    assert out == {
+        "f": 1.5,
+        "i": 3,
+        "b": True,
+        "arr": [[1.0, None], [None, -2.0]],
+        "jax": [0, 1, 2],
+        "jax_scalar": 2.5,
+        "pair": {"a": 1, "b": None},
+        "status": "MAX_STEPS",
+        "color": "RED",
+        "path": "/tmp/x",
+        "tuple": [1, "s", None],
+        "7": "int key",
+        "RED": "enum key",
+    }
+    json.dumps(out, allow_nan=False)  # strictly valid JSON
+    assert type(out["i"]) is int and type(out["f"]) is float and type(out["b"]) is bool
+    strings = je.io.to_jsonable([np.nan, np.inf, -np.inf, 1.0], nonfinite="string")
+    assert strings == ["nan", "inf", "-inf", 1.0]
+
+
+def test_to_jsonable_rejects_unknown_types():
+    with pytest.raises(TypeError, match=r"obj\['k'\]\[1\].*object"):
+        je.io.to_jsonable({"k": [1, object()]})
+    with pytest.raises(ValueError, match="nonfinite"):
+        je.io.to_jsonable(1.0, nonfinite="zero")
+
+
+def test_write_json_round_trip(tmp_path):
+    import json
+
+    path = tmp_path / "s.json"
+    je.io.write_json(path, {"x": np.array([1.0, np.nan]), "status": je.Status.SUCCESS})
+    text = path.read_text()
+    assert text.endswith("\n")
+    assert json.loads(text) == {"x": [1.0, None], "status": "SUCCESS"}
+    assert sorted(os.listdir(tmp_path)) == ["s.json"]

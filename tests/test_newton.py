@@ -4,8 +4,9 @@ Every distinct (ψ, settings, mesh shape, potential structure, linear solver) co
 Newton loop — and ``solve``'s default ``linear="auto"`` solver is keyed on the Dirichlet
 mask too — so the tests share a few meshes (``rectangle(4, 4)``, ``box(3, 2, 2)``), a few
 boundary-condition sets, one material parameter set (Python floats: weak-typed, so new
-values never recompile) and two settings objects. Tests about the matrix-free path pass
-``linear="cg"`` (or call :func:`newton` under jit, which uses CG).
+values never recompile) and two Newton objects. Tests about the matrix-free path pass
+``linear="cg"`` (or call :func:`jaxelastic.solve` under jit on a traced mesh, where
+``"auto"`` is CG).
 """
 
 import jax
@@ -16,18 +17,19 @@ from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
 import jaxelastic as je
+from jaxelastic import CG, Newton, SolveError, Status, solve
 from jaxelastic import loads as L
 from jaxelastic import materials as M
 from jaxelastic.kinematics import deformation_gradients
-from jaxelastic.solvers.newton import NewtonSettings, SolveError, Status, newton, solve
 
 E_MOD, NU = 1.0e4, 0.3
 MU, LAM = (float(v) for v in M.lame(E_MOD, NU))
 PARAMS = M.Lame(MU, LAM)
-DEFAULT = NewtonSettings()
+DEFAULT = Newton()
 # exact element Hessians, no preconditioner, tight tolerance: used wherever the answer is
 # compared with an exact one (and for the quadratic-convergence test)
-TIGHT = NewtonSettings(rtol=1e-12, preconditioner="none")
+TIGHT = Newton(rtol=1e-12)
+TIGHT_CG = Newton(rtol=1e-12, linear=CG(preconditioner="none"))
 
 NONLINEAR = ["stvk", "neo_hookean", "stable_neo_hookean", "fixed_corotated", "corotated", "arap"]
 
@@ -84,7 +86,7 @@ def test_macneal_harder_membrane_patch():
 
     bc = L.fix(mesh, [0, 1, 2, 3], displacement=u_exact)
     pot = je.Potential(mesh=mesh, params=p, psi=M.linear)
-    res = solve(pot, bc, settings=DEFAULT)
+    res = solve(pot, bc, solver=DEFAULT)
     X = np.asarray(mesh.points)
     np.testing.assert_allclose(np.asarray(res.x) - X, u_exact(X), rtol=0, atol=1e-14)
     # the stress is exact in every element (linear model: P = σ)
@@ -148,7 +150,7 @@ def _check_patch_solve(mesh, name):
     x0 = np.asarray(mesh.points).copy()
     x0[interior] += 0.03 * rng.standard_normal((interior.size, mesh.dim))
     pot = je.Potential(mesh=mesh, params=PARAMS, psi=M.BUILTIN[name])
-    res = solve(pot, bc, x0=x0, settings=TIGHT)
+    res = solve(pot, bc, x0=x0, solver=TIGHT)
     np.testing.assert_allclose(np.asarray(res.x)[interior], x_aff[interior], rtol=0, atol=1e-11)
 
 
@@ -186,7 +188,7 @@ def test_uniaxial_neo_hookean_closed_form(rect, blk, dim):
     a = 1.4
     bc, pull = _uniaxial_bc(mesh, a)
     pot = je.Potential(mesh=mesh, params=PARAMS, psi=M.neo_hookean)
-    res = solve(pot, bc, settings=TIGHT)
+    res = solve(pot, bc, solver=TIGHT)
 
     def lateral(b):
         return MU * (b * b - 1.0) + LAM * np.log(a * b ** (dim - 1))
@@ -213,10 +215,10 @@ def test_quadratic_convergence(blk, linear):
     keep Newton quadratic: r_{k+1}/r_k² stays bounded."""
     bc, _ = _uniaxial_bc(blk, 2.2)
     pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
-    res = solve(pot, bc, settings=TIGHT, linear=linear)
-    r = np.asarray(res.residual_history)[: int(res.steps) + 1]
+    res = solve(pot, bc, solver=TIGHT.replace(linear=linear))
+    r = np.asarray(res.stats["residual_history"])[: int(res.stats["steps"]) + 1]
     r = r / r.max()
-    assert res.steps <= 8
+    assert int(res.stats["steps"]) <= 8
     # asymptotic regime: r_k < 0.1, and r_{k+1} above the round-off floor (~1e-13)
     pairs = [(r[k], r[k + 1]) for k in range(len(r) - 1) if 0 < r[k] < 0.1 and r[k + 1] > 1e-11]
     assert len(pairs) >= 2, r
@@ -230,10 +232,10 @@ def test_cg_preconditioners_agree(blk, pc):
     """Matrix-free CG with each preconditioner finds the sparse-direct solution."""
     bc, _ = _uniaxial_bc(blk, 1.4)
     pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
-    settings = TIGHT if pc == "none" else NewtonSettings(rtol=1e-12, preconditioner=pc)
-    ref = solve(pot, bc, settings=TIGHT)  # linear="auto": sparse Cholesky at this size
-    res = solve(pot, bc, settings=settings, linear="cg")
-    assert res.ok and int(res.linear_iterations) > int(res.steps)  # CG really ran
+    settings = Newton(rtol=1e-12, linear=CG(preconditioner=pc))
+    ref = solve(pot, bc, solver=TIGHT)  # linear="auto": sparse Cholesky at this size
+    res = solve(pot, bc, solver=settings)
+    assert res.ok and int(res.stats["linear_iterations"]) > int(res.stats["steps"])  # CG really ran
     np.testing.assert_allclose(np.asarray(res.x), np.asarray(ref.x), rtol=0, atol=1e-11)
 
 
@@ -242,9 +244,9 @@ def test_hvp_matches_element_hessians(blk):
     same Newton iterates (CG, no preconditioner, so nothing else differs)."""
     bc, _ = _uniaxial_bc(blk, 1.4)
     pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
-    ref = solve(pot, bc, settings=TIGHT, linear="cg")  # element Hessians
-    res = solve(pot, bc, settings=TIGHT._replace(hessian="hvp"), linear="cg")
-    assert int(res.steps) == int(ref.steps)
+    ref = solve(pot, bc, solver=Newton(rtol=1e-12, linear="cg"))  # element Hessians
+    res = solve(pot, bc, solver=TIGHT_CG.replace(hessian="hvp"))
+    assert int(res.stats["steps"]) == int(ref.stats["steps"])
     np.testing.assert_allclose(np.asarray(res.x), np.asarray(ref.x), rtol=0, atol=1e-11)
 
 
@@ -255,9 +257,9 @@ def test_projected_hessian_converges(blk):
         L.fix(blk, L.nodes_on_plane(blk, 0, 3.0), displacement=[-1.2, 0.0, 0.4]),
     )
     pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
-    ref = solve(pot, bc, settings=TIGHT)
-    res = solve(pot, bc, settings=NewtonSettings(hessian="projected"))
-    assert res.ok and int(res.steps) >= int(ref.steps) - 1
+    ref = solve(pot, bc, solver=TIGHT)
+    res = solve(pot, bc, solver=Newton(hessian="projected"))
+    assert res.ok and int(res.stats["steps"]) >= int(ref.stats["steps"]) - 1
     np.testing.assert_allclose(np.asarray(res.x), np.asarray(ref.x), rtol=0, atol=1e-6)
 
 
@@ -270,12 +272,12 @@ def test_max_steps_status_under_jit(rect):
     """Under jit a failed solve returns its status instead of raising."""
     bc, _ = _uniaxial_bc(rect, 1.4)
     pot = je.Potential(mesh=rect, params=PARAMS, psi=M.neo_hookean)
-    jitted = jax.jit(newton, static_argnames=("settings",))
-    res = jitted(pot, rect.points, bc, settings=NewtonSettings(max_steps=1))
+    jitted = jax.jit(lambda p, b: solve(p, b, solver=Newton(max_steps=1, linear="cg")))
+    res = jitted(pot, bc)
     assert int(res.status) == Status.MAX_STEPS
-    assert int(res.steps) == 1
+    assert int(res.stats["steps"]) == 1
     assert np.isfinite(np.asarray(res.x)).all()
-    assert not res.ok and "max_steps" in res.reason
+    assert not res.ok and "iteration limit" in res.reason
 
 
 def _inverted_start(mesh):
@@ -292,12 +294,12 @@ def test_inverted_start_neo_hookean(blk):
     bc = L.fix(blk, L.nodes_on_plane(blk, 0, 0.0))
     pot = je.Potential(mesh=blk, params=PARAMS, psi=M.neo_hookean)
     x0 = _inverted_start(blk)
-    res = solve(pot, bc, x0=x0, settings=TIGHT, throw=False)
+    res = solve(pot, bc, x0=x0, solver=TIGHT, throw=False)
     assert int(res.status) == Status.INVERTED
-    assert int(res.steps) == 0
+    assert int(res.stats["steps"]) == 0
     np.testing.assert_array_equal(np.asarray(res.x), x0)
     with pytest.raises(SolveError, match="INVERTED"):
-        solve(pot, bc, x0=x0, settings=TIGHT, throw=True)
+        solve(pot, bc, x0=x0, solver=TIGHT, throw=True)
 
 
 def _psi_nan(F, p):
@@ -311,7 +313,8 @@ def test_nonfinite_status_and_error_message(rect):
     assert int(res.status) == Status.NONFINITE
     with pytest.raises(SolveError, match="NONFINITE") as info:
         solve(pot, bc)
-    assert info.value.result.status == Status.NONFINITE
+    assert info.value.status == Status.NONFINITE
+    assert int(info.value.solution.status) == Status.NONFINITE
 
 
 def _neo_hookean_abs(F, p):
@@ -321,7 +324,7 @@ def _neo_hookean_abs(F, p):
     return 0.5 * p.mu * (jnp.sum(F * F) - d) - p.mu * lnJ + 0.5 * p.lam * lnJ**2
 
 
-POSJ = NewtonSettings(require_positive_J=True)
+POSJ = Newton(require_positive_J=True)
 
 
 def test_require_positive_J(rect):
@@ -329,11 +332,11 @@ def test_require_positive_J(rect):
     pot = je.Potential(mesh=rect, params=PARAMS, psi=_neo_hookean_abs)
     x0 = _inverted_start(rect)
     assert np.isfinite(float(je.energy(_neo_hookean_abs, jnp.asarray(x0), rect, PARAMS)))
-    res = solve(pot, bc, x0=x0, settings=POSJ, throw=False)
+    res = solve(pot, bc, x0=x0, solver=POSJ, throw=False)
     assert int(res.status) == Status.INVERTED
     # a strong compression from the rest shape: the flag keeps every iterate uninverted
     bc2 = L.combine(bc, L.fix(rect, L.nodes_on_plane(rect, 0, 1.0), displacement=[-0.6, 0.2]))
-    res2 = solve(pot, bc2, settings=POSJ)
+    res2 = solve(pot, bc2, solver=POSJ)
     assert _min_J(res2.x, rect) > 0
 
 

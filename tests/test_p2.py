@@ -18,7 +18,6 @@ from _common import MODEL_DIMS
 import jaxelastic as je
 from jaxelastic import loads as L
 from jaxelastic import materials
-from jaxelastic.elements import ELEMENTS, TET10, TRI6, _ref_nodes, get_element
 from jaxelastic.io import MeshData, read_mesh, write_vtu
 from jaxelastic.mesh import (
     MeshError,
@@ -29,6 +28,7 @@ from jaxelastic.mesh import (
     to_quadratic,
     vertex_nodes,
 )
+from jaxelastic.mesh.elements import ELEMENTS, TET10, TRI6, edge_table, get_element, ref_nodes
 
 P2 = [TRI6, TET10]
 
@@ -90,9 +90,7 @@ def _affine_patch(mesh, seed=0, curve=0.0):
     el = mesh.element_type
     if el.n_nodes > el.dim + 1:
         cells = np.asarray(mesh.cells)
-        from jaxelastic.quadratic import _edge_table
-
-        ends = cells[:, _edge_table(el)]  # (c, e, 2)
+        ends = cells[:, edge_table(el)]  # (c, e, 2)
         mids = cells[:, el.dim + 1 :]
         X[mids] = X[ends].mean(axis=2)
         mid_inner = np.intersect1d(np.unique(mids), inner)
@@ -107,7 +105,7 @@ def _affine_patch(mesh, seed=0, curve=0.0):
 
 @pytest.mark.parametrize("el", P2, ids=lambda e: e.name)
 def test_p2_shape_functions_interpolate_reproduce_quadratics_and_gradients(el):
-    nodes = _ref_nodes(el.dim)
+    nodes = ref_nodes(el.dim)
     np.testing.assert_allclose(el.shape_functions(nodes), np.eye(el.n_nodes), atol=1e-15)
     xi = np.random.default_rng(0).dirichlet(np.ones(el.dim + 1), size=20)[:, 1:]
     N = el.shape_functions(xi)
@@ -144,11 +142,11 @@ def test_composite_sub_simplices_tile_the_reference_cell(name):
     assert G.shape == (len(el.sub_cells), el.n_nodes, el.dim)
     # X(ξ) = ξ is reproduced on every sub-simplex, nodes outside it have zero gradient
     eye = np.broadcast_to(np.eye(el.dim), (len(G), el.dim, el.dim))
-    np.testing.assert_allclose(np.einsum("ka,skb->sab", _ref_nodes(el.dim), G), eye, atol=1e-14)
+    np.testing.assert_allclose(np.einsum("ka,skb->sab", ref_nodes(el.dim), G), eye, atol=1e-14)
     for s, sub in enumerate(el.sub_cells):
         outside = np.setdiff1d(np.arange(el.n_nodes), sub)
         assert np.all(G[s, outside] == 0)
-        Y = _ref_nodes(el.dim)[list(sub)]
+        Y = ref_nodes(el.dim)[list(sub)]
         assert np.linalg.det((Y[1:] - Y[0]).T) > 0  # positively oriented
     assert len({frozenset(s) for s in el.sub_cells}) == len(el.sub_cells)
 
@@ -167,9 +165,7 @@ def test_to_quadratic_adds_one_midpoint_per_edge(dim):
     X, X2 = np.asarray(p1.points), np.asarray(p2.points)
     np.testing.assert_array_equal(X2[: p1.n_nodes], X)  # P1 numbering kept
     cells = np.asarray(p2.cells)
-    from jaxelastic.quadratic import _edge_table
-
-    ends = cells[:, _edge_table(p2.element_type)]
+    ends = cells[:, edge_table(p2.element_type)]
     np.testing.assert_allclose(X2[cells[:, dim + 1 :]], X2[ends].mean(axis=2), atol=1e-15)
     assert len(np.unique(X2.round(12), axis=0)) == p2.n_nodes  # shared edges deduplicated
     np.testing.assert_allclose(np.asarray(p2.volumes), np.asarray(p1.volumes), rtol=1e-12)
@@ -277,11 +273,11 @@ def test_traction_gravity_mass_totals(element):
 
 def test_p2_facet_shares_and_hrz_masses_of_single_cells():
     # 3-node edge: ∫N = A/6, A/6, 2A/3; 6-node triangle: 0 at corners, A/3 at mid-nodes
-    tri = from_arrays(_ref_nodes(2) * 2.0, [np.arange(6)])
+    tri = from_arrays(ref_nodes(2) * 2.0, [np.arange(6)])
     f = boundary_facets(tri)
     shares, area, _ = L.facet_integrals(tri.points, f, tri.element_type)
     np.testing.assert_allclose(shares / area[:, None], [[1 / 6, 1 / 6, 2 / 3]] * 3, atol=1e-14)
-    tet = from_arrays(_ref_nodes(3) * 2.0, [np.arange(10)])
+    tet = from_arrays(ref_nodes(3) * 2.0, [np.arange(10)])
     shares, area, _ = L.facet_integrals(tet.points, boundary_facets(tet), tet.element_type)
     np.testing.assert_allclose(
         shares / area[:, None], [[0, 0, 0, 1 / 3, 1 / 3, 1 / 3]] * 4, atol=1e-14
@@ -540,7 +536,7 @@ def test_write_vtu_p2_cell_fields_are_quadrature_averages(tmp_path, dim):
 
 
 def test_scene_lifts_p1_file_sets_to_p2():
-    from jaxelastic._scene_run import _lift_file_mesh
+    from jaxelastic.scene.build import lift_file_mesh
 
     p1 = je.rectangle(2, 1, size=(2.0, 1.0))
     X = np.asarray(p1.points)
@@ -549,7 +545,7 @@ def test_scene_lifts_p1_file_sets_to_p2():
     left = np.flatnonzero(X[:, 0] == 0.0)
     md = MeshData(p1, {"left": left}, {}, {"right": right}, np.arange(p1.n_nodes), "x.msh")
     for order, form, element in ((2, "standard", "tri6"), (None, "fbar", "tri3x4")):
-        mesh, md2 = _lift_file_mesh(md, order, form)
+        mesh, md2 = lift_file_mesh(md, order, form)
         assert (mesh.element, mesh.formulation) == (element, form)
         Xq = np.asarray(mesh.points)
         np.testing.assert_array_equal(md2.point_sets["left"], np.flatnonzero(Xq[:, 0] == 0.0))
@@ -557,7 +553,7 @@ def test_scene_lifts_p1_file_sets_to_p2():
         assert Xq[md2.facet_sets["right"][0, 2], 1] == pytest.approx(0.5)
         assert md2.node_map[-1] == -1
     with pytest.raises(MeshError, match="order = 1"):
-        _lift_file_mesh(dataclasses.replace(md, mesh=to_quadratic(p1)), 1, "standard")
+        lift_file_mesh(dataclasses.replace(md, mesh=to_quadratic(p1)), 1, "standard")
 
 
 def test_plot_p2_outline_passes_through_mid_nodes():

@@ -8,7 +8,7 @@ stability table are ``slow``.
 
 from __future__ import annotations
 
-import importlib
+import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -16,14 +16,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
-sys.path.insert(0, str(SCRIPTS))
-acc = importlib.import_module("report_accuracy")
-stab = importlib.import_module("report_stability")
-rc = importlib.import_module("_report_common")
+import jaxelastic as je
+from jaxelastic import benchmarks as bm
 
-P2_OK = rc.element_support()[0]
-needs_p2 = pytest.mark.skipif(not P2_OK, reason="P2/F-bar elements not available")
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def _load_script(name: str):
+    """Import ``scripts/<name>.py`` as the module ``name``, as running it from scripts/
+    would (the reports import their sibling ``_report_common`` by that name)."""
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+rc = _load_script("_report_common")
+acc = _load_script("report_accuracy")
+stab = _load_script("report_stability")
 
 
 def _rows(result, case, element="P1", solver=None):
@@ -54,21 +66,19 @@ def test_timoshenko_exact_field_and_error_norms():
     REFERENCES value 0.0089; the error norm of the interpolant is small and that of a
     scaled field is the scaling."""
     X = np.array([[10.0, 2.0], [30.0, -4.0], [48.0, 0.0]])
-    u, g = acc.timoshenko_exact(X)
+    u, g = bm.timoshenko_exact(X)
     eps = 1e-6
     for j in range(2):
         dX = np.zeros_like(X)
         dX[:, j] = eps
-        fd = (acc.timoshenko_exact(X + dX)[0] - acc.timoshenko_exact(X - dX)[0]) / (2 * eps)
+        fd = (bm.timoshenko_exact(X + dX)[0] - bm.timoshenko_exact(X - dX)[0]) / (2 * eps)
         np.testing.assert_allclose(g[:, :, j], fd, rtol=1e-7, atol=1e-14)
     assert u[2, 1] == pytest.approx(0.0089, rel=2e-3)
-    import jaxelastic as je
-
     m = je.rectangle(16, 4, (48.0, 12.0), (0.0, -6.0))
     X = np.asarray(m.points)
-    ue = acc.timoshenko_exact(X)[0]
+    ue = bm.timoshenko_exact(X)[0]
     mu, lam = je.lame(3e7, 0.3, dim=2, plane="stress")
-    exact = (lambda Z: acc.timoshenko_exact(Z)[0], lambda Z: acc.timoshenko_exact(Z)[1])
+    exact = (lambda Z: bm.timoshenko_exact(Z)[0], lambda Z: bm.timoshenko_exact(Z)[1])
     l2, en = acc.error_norms_2d(m, X + 0.5 * ue, *exact, mu, lam)
     # half the interpolant: errors near 1/2 (plus the interpolation error)
     assert 0.45 < l2 < 0.55 and 0.45 < en < 0.6
@@ -78,7 +88,7 @@ def test_timoshenko_exact_field_and_error_norms():
     # end load) is the best approximation in the energy norm, better than the interpolant
     prob = acc.build_timoshenko(4, "P1")
     assert prob.pot.mesh.n_nodes == m.n_nodes
-    x = np.asarray(je.solve(prob.pot, prob.bc, linear="direct").x)
+    x = np.asarray(je.solve(prob.pot, prob.bc, solver=je.Newton(linear="direct")).x)
     fe = prob.evaluate(x)
     assert fe["error_energy"] < eni
     assert fe["error_energy"] == pytest.approx(acc.error_norms_2d(m, x, *exact, mu, lam)[1])
@@ -87,7 +97,6 @@ def test_timoshenko_exact_field_and_error_norms():
 def test_edge_load_is_consistent():
     """The parabolic end shear integrates to P and, on P1 edges, matches ∫N_a t exactly
     for a quadratic t (5-point Gauss)."""
-    import jaxelastic as je
     from jaxelastic import loads
 
     m = je.rectangle(4, 3, (48.0, 12.0), (0.0, -6.0))
@@ -97,7 +106,7 @@ def test_edge_load_is_consistent():
     def t(X):
         return np.stack([0 * X[:, 1], 1000.0 / (2 * I) * (36.0 - X[:, 1] ** 2)], 1)
 
-    f = acc._edge_load_2d(m, facets, t)
+    f = bm.edge_load_2d(m, facets, t)
     assert f[:, 1].sum() == pytest.approx(1000.0, rel=1e-12)
     assert np.abs(f[:, 0]).max() == 0.0
     # top and bottom corner nodes: ∫ over the one edge of N t, by hand for t(y) quadratic
@@ -106,24 +115,27 @@ def test_edge_load_is_consistent():
     s = np.linspace(0, 1, 200001)
     tt = 1000.0 / (2 * I) * (36.0 - (a + s * (b - a)) ** 2)
     corner = np.trapezoid((1 - s) * tt, s) * (b - a)
-    i = acc._node_at(m, (48.0, -6.0))
+    i = bm.node_at(m, (48.0, -6.0))
     assert f[i, 1] == pytest.approx(corner, rel=1e-8)
 
 
-def test_twist_setup_matches_bench_solvers():
-    import bench_solvers
-
-    import jaxelastic as je
-    from jaxelastic import loads
-
-    _, _, bc1 = bench_solvers._twist_problem(3)
-    m = je.box(3, 3, 3)
-    bc = loads.combine(
-        loads.fix(m, loads.nodes_on_plane(m, 0, 1.0)),
-        loads.fix(m, loads.nodes_on_plane(m, 0, 0.0), displacement=acc.twist_u),
-    )
-    np.testing.assert_array_equal(np.asarray(bc.mask), np.asarray(bc1.mask))
-    np.testing.assert_allclose(np.asarray(bc.values), np.asarray(bc1.values), atol=1e-15)
+def test_twist_benchmark_setup():
+    """bench_solvers times the benchmark's twist; its x = 0 face gets half of the 60°
+    rotation about (y, z) = (0.5, 0.5) as displacement, x = 1 is clamped."""
+    bench = _load_script("bench_solvers")
+    b = bm.twist(3)
+    _, pot, bc = bench._twist_problem(3)
+    assert pot.psi is b.psi and pot.mesh.n_nodes == b.mesh.n_nodes
+    np.testing.assert_array_equal(np.asarray(bc.mask), np.asarray(b.bc.mask))
+    X = np.asarray(b.mesh.points)
+    turned, clamped = b.probes["turned"], b.probes["clamped"]
+    c, s = np.cos(bm.TWIST_THETA), np.sin(bm.TWIST_THETA)
+    R = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    Y = X[turned] - [0.0, 0.5, 0.5]
+    expect = X[turned] + (Y @ R.T - Y) / 2  # Dirichlet values are positions
+    np.testing.assert_allclose(np.asarray(b.bc.values)[turned], expect, atol=1e-15)
+    np.testing.assert_array_equal(np.asarray(b.bc.values)[clamped], X[clamped])
+    assert np.asarray(b.bc.mask)[np.r_[turned, clamped]].all()
 
 
 # --------------------------------------------------------------------------------------
@@ -212,7 +224,6 @@ def test_timoshenko_rates_p1(tmp_path):
 
 
 @pytest.mark.slow
-@needs_p2
 def test_timoshenko_rates_p2(tmp_path):
     res = acc.run(
         tmp_path, quick=True, case_names=["timoshenko"], elements=["P2"], verbose=False, plots=False
@@ -225,17 +236,20 @@ def test_timoshenko_rates_p2(tmp_path):
 
 @pytest.mark.slow
 def test_cantilever3d_p1_locks_and_p2_does_not(tmp_path):
-    els = ["P1", "P2"] if P2_OK else ["P1"]
     res = acc.run(
-        tmp_path, quick=True, case_names=["cantilever3d"], elements=els, verbose=False, plots=False
+        tmp_path,
+        quick=True,
+        case_names=["cantilever3d"],
+        elements=["P1", "P2"],
+        verbose=False,
+        plots=False,
     )
     p1 = _rows(res, "cantilever3d")
     ratio = [r["ratio"] for r in p1]
     # shear locking: far below beam theory, improving with refinement (1, 2 elements)
     assert ratio[0] < 0.4 and 0.45 < ratio[1] < 0.7 and ratio[1] > ratio[0]
-    if P2_OK:
-        two = [r for r in _rows(res, "cantilever3d", "P2") if r["level"] == 2][0]
-        assert 0.98 <= two["ratio"] <= 1.02
+    two = [r for r in _rows(res, "cantilever3d", "P2") if r["level"] == 2][0]
+    assert 0.98 <= two["ratio"] <= 1.02
 
 
 @pytest.mark.slow
@@ -254,7 +268,6 @@ def test_homogeneous_cases_exact(tmp_path):
 
 
 @pytest.mark.slow
-@needs_p2
 def test_nearly_incompressible_cook_p2_and_fbar(tmp_path):
     res = acc.run(
         tmp_path,

@@ -27,7 +27,8 @@ from jaxelastic import dynamics as D
 from jaxelastic import loads as L
 from jaxelastic import materials as M
 from jaxelastic.kinematics import deformation_gradients
-from jaxelastic.solvers.newton import NewtonSettings, Status
+
+Status = je.Status
 
 MU, LAM = (float(v) for v in M.lame(1.0e4, 0.3))
 PARAMS = M.Lame(MU, LAM)
@@ -37,7 +38,7 @@ RELAX = D.Integrator(h=1.0)
 # below that floor. max_steps: from a random start the first step can need ~200 Newton
 # iterations (slow progress along large rigid rotations, which only the weak M/h² term
 # resists when h = 1 s).
-SETTINGS = NewtonSettings(max_steps=400, atol=1e-8)
+SOLVER = je.Newton(max_steps=400, atol=1e-8)
 N_STEPS = 30
 
 
@@ -71,7 +72,7 @@ def _relax(mesh, psi, name, n_steps=N_STEPS, seed=42):
         L.no_dirichlet(mesh),
         RELAX,
         n_steps,
-        settings=SETTINGS,
+        solver=SOLVER,
         progress=False,
         throw=False,
     )
@@ -291,9 +292,10 @@ def test_stiff_nearly_incompressible_static(beam):
     assert np.abs(J - 1).max() < 1e-5  # nearly incompressible
 
 
-@functools.partial(jax.jit, static_argnames=("settings",))
-def _step_h(base, state, bc, h, settings):
-    return D.step(base, state, bc, D.Integrator(h), settings)
+@functools.partial(jax.jit, static_argnames=("integ",))
+def _step(base, state, bc, integ):
+    """One jitted step with the matrix-free CG (one compile per time step h)."""
+    return D.step(base, state, bc, integ, solver=je.Newton(linear="cg"))
 
 
 @pytest.mark.parametrize("h", [1e-4, 1.0])
@@ -302,7 +304,7 @@ def test_stiff_dynamics_tiny_and_huge_steps(beam, h):
     base = pot.replace(mass=jnp.asarray(L.lumped_mass(mesh, RHO)))
     st = D.init_state(mesh.points)
     for _ in range(3):
-        st, res = _step_h(base, st, clamp, jnp.asarray(h), NewtonSettings())
+        st, res = _step(base, st, clamp, D.Integrator(h))
         assert int(res.status) == Status.SUCCESS, Status(int(res.status)).name
     uz = np.asarray(st.x - mesh.points)[:, 2]
     tip = L.nodes_on_plane(mesh, 0, 3.0)

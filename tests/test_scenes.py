@@ -1,4 +1,5 @@
-"""Scene files: validation with messages naming the key, building, running end to end."""
+"""Scene files: validation with messages naming the key, the JSON Schema and the generated
+reference, building, running end to end."""
 
 import json
 import os
@@ -11,10 +12,15 @@ import numpy as np
 import pytest
 from _common import TINY_SCENE
 
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python < 3.11
+    import tomli as tomllib
+
 import jaxelastic as je
-from jaxelastic import scenes
-from jaxelastic.scenes import SceneError, apply_overrides, build, load_scene, run_scene
-from jaxelastic.solvers.newton import SolveError
+import jaxelastic.scene as jscene
+from jaxelastic.scene import SceneError, apply_overrides, build, load_scene, run_scene
+from jaxelastic.solvers import SolveError
 
 TINY = TINY_SCENE
 
@@ -29,7 +35,7 @@ def _bad(overrides, base=TINY):
 
 
 def test_shipped_scenes_parse_and_build():
-    shipped = scenes.shipped_scenes()
+    shipped = jscene.shipped_scenes()
     assert {"default", "twist", "cook", "swing2d"} <= set(shipped)
     for name, path in shipped.items():
         s = load_scene(path)
@@ -79,7 +85,8 @@ def test_twist_boundary_data_match_the_jax_fem_formula():
 def test_defaults_round_trip_and_freeze():
     s = load_scene(TINY)
     assert s.static and s.dim == 2 and s.label == "<dict>"
-    assert s["solver"] == {} and s["output"]["every"] == 1 and s["output"]["vtu"] is True
+    assert s["solver"]["rtol"] == 1e-8 and s["solver"]["linear"] == "auto"
+    assert s["output"]["every"] == 1 and s["output"]["vtu"] is True
     with pytest.raises(TypeError):
         s["material"]["E"] = 5.0  # read-only
     again = load_scene(s.to_dict())
@@ -160,6 +167,16 @@ def test_bad_scenes_are_refused_naming_the_key(overrides, message):
     assert message in str(e.value)
 
 
+def test_several_problems_are_listed():
+    bad = _bad({"material.E": "big", "output.every": 0, "fit": {"case": {"weight": 1.0}}})
+    with pytest.raises(SceneError) as e:
+        load_scene(bad)
+    lines = str(e.value).splitlines()
+    assert lines[0] == "scene '<dict>': [material].E must be a number, got string 'big'"
+    assert lines[1] == "  and: [output].every must be >= 1, got 0"
+    assert lines[2] == "  and: [fit.case] must be an array of tables: write [[fit.case]]"
+
+
 def test_bad_scene_3d_specific():
     with pytest.raises(SceneError, match=r"\[material\].plane applies to 2D meshes only"):
         load_scene("default", overrides={"material.plane": "stress"})
@@ -198,7 +215,7 @@ def test_bad_scene_3d_specific():
             {"traction.0.facets": {"box": {"lo": [1.9, 0.4], "hi": [2.1, 0.6]}}},
             "[traction][0].facets selects no boundary facets",
         ),
-        ({"material.model": "jaxelastic.scenes:where_mask"}, "[material].model"),
+        ({"material.model": "jaxelastic.scene.where:where_mask"}, "[material].model"),
         (
             {"material.model": "stable_neo_hookean_log"},
             "[material].model 'stable_neo_hookean_log' fails at F = I in 2D",
@@ -233,7 +250,7 @@ def test_scene_file_errors(tmp_path):
 
 def test_where_expressions():
     X = np.array([[0.0, 0.0], [1.0, 0.5], [2.0, 1.0]])
-    m = scenes.where_mask
+    m = jscene.where_mask
     assert m("x < 1e-9", X).tolist() == [True, False, False]
     assert m("(X[:, 0] > 0.5) & (abs(y - 0.5) < 0.6)", X).tolist() == [False, True, True]
     assert m("np.isclose(x, 1.0) or y >= 1", X).tolist() == [False, True, True]
@@ -421,7 +438,7 @@ def test_default_scene_small_variant_end_to_end(tmp_path):
 
 
 def test_stale_series_files_are_removed(tmp_path):
-    from jaxelastic._scene_run import _remove_stale
+    from jaxelastic.scene.outputs import remove_stale
 
     for name in (
         "dynamic_0000.vtu",
@@ -432,7 +449,7 @@ def test_stale_series_files_are_removed(tmp_path):
         "dynamic_0003.vtu.bak",
     ):
         (tmp_path / name).write_text("")
-    _remove_stale(str(tmp_path), "dynamic", 2)
+    remove_stale(str(tmp_path), "dynamic", 2)
     assert sorted(os.listdir(tmp_path)) == [
         "dynamic_0000.vtu",
         "dynamic_0001.vtu",
@@ -514,13 +531,57 @@ def test_loads_are_assembled():
 
 
 def test_documented_example_is_a_valid_scene():
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python < 3.11
-        import tomli as tomllib
+    from jaxelastic.scene.docs import EXAMPLE
 
-    text = scenes.SCENE_DOCS.split("```toml\n", 1)[1].split("```", 1)[0]
-    s = load_scene(tomllib.loads(text))
+    s = load_scene(tomllib.loads(EXAMPLE))
     b = build(s)
     assert b.mesh.dim == 3 and b.potential.mass is not None and b.potential.f_ext is not None
-    assert scenes.SCENE_DOCS.startswith("### Scene file reference")
+    assert "```toml\n" + EXAMPLE + "```" in jscene.reference_markdown()
+
+
+# ----------------------------------------------------------------------------------------
+# the JSON Schema, the generated reference, the solver defaults
+# ----------------------------------------------------------------------------------------
+
+
+def test_json_schema_validates_the_shipped_scenes(capsys):
+    from jaxelastic import cli
+    from jaxelastic.scene.schema import SceneSpec
+
+    assert cli.main(["schema"]) == 0
+    schema = json.loads(capsys.readouterr().out)
+    assert schema == json.loads(json.dumps(jscene.json_schema()))
+    tables = {"mesh", "material", "dirichlet", "traction", "point_load", "gravity", "solver"}
+    tables |= {"integrator", "output", "fit"}
+    assert tables <= set(schema["properties"]) and schema["required"] == ["mesh", "material"]
+    defs = schema["$defs"]
+    for name in ("MeshSpec", "MaterialSpec", "SolverSpec", "DynamicIntegrator", "FitSpec"):
+        assert defs[name]["properties"] and defs[name]["additionalProperties"] is False
+    jsonschema = pytest.importorskip("jsonschema")
+    jsonschema.Draft202012Validator.check_schema(schema)
+    validator = jsonschema.Draft202012Validator(schema)
+    for name, path in jscene.shipped_scenes().items():
+        with open(path, "rb") as f:
+            raw = tomllib.load(f)
+        assert not list(validator.iter_errors(raw)), name  # the editor's check
+        SceneSpec.model_validate(raw, context={"base_dir": os.path.dirname(path)})
+    bad = apply_overrides(TINY, {"material.E": -1.0, "solver.linear": "lu"})
+    assert len(list(validator.iter_errors(bad))) == 2
+
+
+def test_committed_reference_is_the_generated_one():
+    path = os.path.join(os.path.dirname(__file__), os.pardir, "docs", "scenes.md")
+    with open(path, encoding="utf-8") as f:
+        committed = f.read()
+    assert committed == jscene.reference_markdown(), "run: python scripts/gen_scene_docs.py"
+
+
+def test_solver_defaults_are_newtons():
+    from jaxelastic.scene.build import newton_of
+    from jaxelastic.scene.schema import SolverSpec
+
+    n, spec = je.Newton(), SolverSpec()
+    assert newton_of(spec) == n.replace(linear="auto")
+    cg = newton_of(SolverSpec(linear="cg"))
+    assert cg.linear == je.CG(preconditioner=spec.preconditioner, max_iter=spec.cg_max_iter)
+    assert je.CG() == cg.linear  # the CG defaults, too

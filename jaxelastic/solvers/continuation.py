@@ -3,135 +3,116 @@
 For loads too large for one Newton solve (buckling-prone, strongly nonlinear, or a boundary
 motion that would tangle the mesh in one step), the load factor ``s`` goes from 0 to 1;
 at each trial ``s`` the potential's external forces are ``s·f_ext`` and the Dirichlet data
-``bc_fn(s)``. A failed solve halves the increment (from the last converged state); a
-success grows it again (×1.5, at most the initial increment). All solves share one
-compilation: only array values change between them.
+``path(s)`` (default: the prescribed displacement scaled by ``s``). A failed solve halves
+the increment (from the last converged state); a success grows it again (×1.5, at most the
+initial increment). Every increment is one :func:`~jaxelastic.solvers.solve.solve`; all
+share one compilation (only array values change between them).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import NamedTuple
 
 import jax.numpy as jnp
 
 from ..loads import Dirichlet
 from ..potential import Potential
-from .newton import NewtonResult, NewtonSettings, SolveError, Status, make_linear, solve
+from .newton import Newton
+from .results import Solution, SolveError, Status
+from .solve import bind_solver, solve
 
-__all__ = ["IncrementalResult", "scaled_dirichlet", "solve_incremental"]
-
-
-class IncrementalResult(NamedTuple):
-    """Result of :func:`solve_incremental`.
-
-    Attributes:
-        x: ``(n_nodes, dim)`` positions at the last converged load factor.
-        status: :class:`~jaxelastic.solvers.newton.Status` of the whole continuation
-            (SUCCESS when s = 1 was reached).
-        load_factor: the last converged load factor (1.0 on success).
-        last: the :class:`~jaxelastic.solvers.newton.NewtonResult` of the last solve tried.
-        history: one dict per trial: ``s``, ``status``, Newton and linear iterations,
-            residual, wall time, ``accepted``.
-        wall_time: total seconds.
-    """
-
-    x: object
-    status: int
-    load_factor: float
-    last: NewtonResult
-    history: list
-    wall_time: float
-
-    @property
-    def ok(self) -> bool:
-        return self.status == Status.SUCCESS
+__all__ = ["scaled_dirichlet", "solve_incremental"]
 
 
 def scaled_dirichlet(mesh, bc: Dirichlet) -> Callable[[float], Dirichlet]:
     """``s ↦`` Dirichlet data with the prescribed *displacement* scaled by ``s``."""
     X = mesh.points
 
-    def bc_fn(s):
+    def path(s):
         return Dirichlet(mask=bc.mask, values=X + s * (bc.values - X))
 
-    return bc_fn
+    return path
+
+
+def _record(s: float, res: Solution) -> dict:
+    st = res.stats
+    return dict(
+        s=s,
+        status=Status(int(res.status)).name,
+        steps=int(st["steps"]),
+        linear_iterations=int(st["linear_iterations"]),
+        residual=float(st["residual"]),
+        wall_time=float(st["wall_time"]),
+        accepted=bool(res.ok),
+    )
 
 
 def solve_incremental(
     pot: Potential,
-    bc: Dirichlet | Callable[[float], Dirichlet],
-    x0=None,
+    bc: Dirichlet,
     *,
+    x0=None,
+    solver: Newton = Newton(),
     steps: int = 1,
     min_increment: float = 1.0 / 1024,
-    settings: NewtonSettings = NewtonSettings(),
-    linear="auto",
+    path: Callable[[float], Dirichlet] | None = None,
     throw: bool = True,
-    callback: Callable[[float, NewtonResult], None] | None = None,
-) -> IncrementalResult:
+    callback: Callable[[float, Solution], None] | None = None,
+) -> Solution:
     """Solve the static problem at load factor 1 by increments with automatic cut-back.
 
     Args:
         pot: potential with the *full* external forces (scaled by ``s`` internally).
-        bc: full Dirichlet data (its displacement is scaled by ``s``), or ``s ↦ Dirichlet``
-            (the mask must not depend on ``s``).
+        bc: full Dirichlet data (its displacement is scaled by ``s`` unless ``path`` is
+            given).
         x0: initial positions (default: rest).
+        solver: :class:`~jaxelastic.solvers.newton.Newton` (bound once for all increments).
         steps: initial number of increments (the first try is ``s = 1/steps``).
         min_increment: give up when the increment would fall below this.
-        settings, linear: as in :func:`~jaxelastic.solvers.newton.solve`.
-        throw: raise :class:`SolveError` when the continuation fails.
-        callback: called with ``(s, result)`` after every converged increment.
+        path: optional ``s ↦ Dirichlet`` (the mask must not depend on ``s``); e.g. a
+            rotation by ``s·θ`` instead of a scaled displacement.
+        throw: raise :class:`~jaxelastic.solvers.results.SolveError` when it fails.
+        callback: called with ``(s, solution)`` after every converged increment.
+
+    Returns:
+        The :class:`~jaxelastic.solvers.results.Solution` of the last solve tried, with
+        ``x`` at the last converged load factor, ``status`` SUCCESS when ``s = 1`` was
+        reached, and extra stats ``load_factor`` (float), ``increments`` (one dict per
+        trial: ``s``, ``status``, ``steps``, ``linear_iterations``, ``residual``,
+        ``wall_time``, ``accepted``) and ``wall_time`` (total seconds).
     """
-    if steps < 1:
+    if int(steps) < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
-    bc_fn = bc if callable(bc) else scaled_dirichlet(pot.mesh, bc)
+    if not 0 < min_increment <= 1:
+        raise ValueError(f"min_increment must be in (0, 1], got {min_increment}")
+    path = path if path is not None else scaled_dirichlet(pot.mesh, bc)
     x = pot.mesh.points if x0 is None else jnp.asarray(x0, pot.mesh.points.dtype)
-    if isinstance(linear, str):
-        linear = make_linear(pot.mesh, bc_fn(1.0), linear)
+    solver = bind_solver(solver, pot.mesh, path(1.0))
     f_full = pot.f_ext
     s, ds0 = 0.0, 1.0 / steps
     ds = ds0
     history: list = []
-    last = None
+    last: Solution | None = None
     t0 = time.perf_counter()
-    status = Status.SUCCESS
     while s < 1.0:
         s_try = min(1.0, s + ds)
         p = pot if f_full is None else pot.replace(f_ext=s_try * f_full)
-        res = solve(p, bc_fn(s_try), x, settings=settings, linear=linear, throw=False)
-        last = res
-        ok = res.ok
-        history.append(
-            dict(
-                s=s_try,
-                status=Status(int(res.status)).name,
-                newton_steps=int(res.steps),
-                linear_iterations=int(res.linear_iterations),
-                residual=float(res.residual),
-                wall_time=float(res.wall_time),
-                accepted=bool(ok),
-            )
-        )
-        if ok:
-            s, x = s_try, res.x
+        last = solve(p, path(s_try), x0=x, solver=solver, throw=False)
+        history.append(_record(s_try, last))
+        if bool(last.ok):
+            s, x = s_try, last.x
             if callback is not None:
-                callback(s, res)
+                callback(s, last)
             ds = min(ds0, 1.5 * ds)
         else:
             ds = 0.5 * ds
             if ds < min_increment:
-                status = Status(int(res.status))
                 break
-    out = IncrementalResult(
-        x=x,
-        status=int(status),
-        load_factor=s,
-        last=last,
-        history=history,
-        wall_time=time.perf_counter() - t0,
-    )
-    if throw and not out.ok:
-        raise SolveError(last, what=f"load stepping (stalled at load factor {s:.4g})")
+    assert last is not None
+    status = last.status if s < 1.0 else jnp.asarray(Status.SUCCESS, jnp.int32)
+    stats = dict(last.stats, load_factor=s, increments=history, wall_time=time.perf_counter() - t0)
+    out = Solution(x=x, status=status, stats=stats)
+    if throw and s < 1.0:
+        raise SolveError(out, what=f"load stepping (stalled at load factor {s:.4g})")
     return out

@@ -1,47 +1,69 @@
-"""Host-side linear algebra behind the Newton interface (sparse Cholesky, AMG-CG).
+"""Host factorise / apply services behind the device conjugate-gradient loop.
 
 :class:`HostLinearSolver` is built once per (mesh, Dirichlet mask): it analyses the
-sparsity pattern and keeps a :mod:`~jaxelastic.solvers.sparse` solver. Inside the jitted
-Newton loop it is reached through :func:`jax.pure_callback`: the element Hessians computed
-by JAX are assembled into CSR on the host (one ``bincount``), factorised or given an AMG
-hierarchy, and the step comes back to the loop. On CPU nothing is copied across devices.
+sparsity pattern and keeps a :mod:`~jaxelastic.solvers.backends` back end. The device CG
+(:func:`jaxelastic.solvers.linear.cg`) runs every Krylov iteration and reaches the host
+through :func:`jax.pure_callback` only to
 
-If the assembled Hessian is not positive definite (Cholesky fails, or AMG-CG meets
-negative curvature), the element Hessians are PSD-projected on the host and the system is
-solved again; the call reports it.
+* :meth:`HostLinearSolver.factor`: assemble the element Hessians computed by JAX into CSR
+  (one ``bincount``) and factorise them (``"direct"``: sparse Cholesky, LU fallback) or
+  build / refresh an AMG hierarchy (``"amg"``), returning a status code; and
+* :meth:`HostLinearSolver.apply`: ``K⁻¹r`` (direct, exact) or one V-cycle ``M⁻¹r`` (AMG).
+
+The host runs no Krylov loop and never modifies the Hessian: when :meth:`factor` reports
+:data:`NOT_POSITIVE_DEFINITE`, the caller projects the element Hessians
+(:func:`jaxelastic.energy.project_psd`) and factorises again. On CPU nothing is copied
+across devices.
+
+Status codes (members of :class:`jaxelastic.Status`): :data:`SUCCESS` = 0,
+:data:`NONFINITE` = 4 (non-finite Hessian or mass entries: nothing factorised, apply
+gives NaN), :data:`NOT_POSITIVE_DEFINITE` = 6 (direct: Cholesky failed, a pivoted LU
+factorisation is used by apply, or NaN if the matrix is singular; AMG: a free diagonal
+entry is ``≤ 0``, the hierarchy is built anyway).
 """
 
 from __future__ import annotations
 
 import hashlib
 import threading
+import time
 
 import numpy as np
+import scipy.sparse as sp
 
-from .sparse import AMGSolver, DirectSolver, SparsityPattern, _pcg, make_solver
+from .backends import AMGSolver, DirectSolver, make_backend
+from .pattern import SparsityPattern
+from .results import Status
 
-__all__ = ["HostLinearSolver"]
+__all__ = ["HostLinearSolver", "SUCCESS", "NONFINITE", "NOT_POSITIVE_DEFINITE"]
 
-
-def _project_psd_np(Ke: np.ndarray) -> np.ndarray:
-    Ke = 0.5 * (Ke + np.swapaxes(Ke, 1, 2))
-    lam, Q = np.linalg.eigh(Ke)
-    return np.einsum("cij,cj,ckj->cik", Q, np.maximum(lam, 0.0), Q)
+# the statuses :meth:`HostLinearSolver.factor` returns (members of je.Status)
+SUCCESS = Status.SUCCESS  # factorised (positive definite) / AMG hierarchy built
+NONFINITE = Status.NONFINITE  # non-finite Hessian or mass entries: nothing factorised
+NOT_POSITIVE_DEFINITE = Status.NOT_POSITIVE_DEFINITE  # the assembled matrix is not SPD
 
 
 class HostLinearSolver:
-    """Sparse direct or AMG solve of the Newton system on the host.
+    """Sparse factorisation (direct) or AMG hierarchy of the Newton matrix on the host.
 
     Args:
         cells: ``(n_cells, k)`` connectivity; points: ``(n_nodes, dim)`` rest positions.
         fixed: ``(n_nodes, dim)`` bool Dirichlet mask.
-        kind: ``"direct"`` (CHOLMOD Cholesky via cholespy, SuperLU fallback) or ``"amg"``
-            (PyAMG smoothed aggregation with rigid-body modes, as a CG preconditioner).
-        **opts: options of the underlying solver class.
+        kind: ``"direct"`` (CHOLMOD Cholesky via cholespy, SuperLU fallback; :meth:`apply`
+            is an exact solve) or ``"amg"`` (PyAMG smoothed aggregation with rigid-body
+            modes; :meth:`apply` is one V-cycle, a preconditioner).
+        **opts: options of the back end (:class:`~jaxelastic.solvers.backends.DirectSolver`
+            or :class:`~jaxelastic.solvers.backends.AMGSolver`).
 
-    Instances compare equal (and hash alike) when built for the same connectivity, mask,
-    kind and options, so jitted solvers taking one as a static argument compile once per
-    scene even if the object is rebuilt; reuse one to also skip the pattern analysis.
+    Instances compare equal (and hash alike) when built for the same connectivity, rest
+    positions, mask, kind and options, so jitted solvers taking one as a static argument
+    compile once per scene even if the object is rebuilt; reuse one to also skip the
+    pattern analysis.
+
+    Counters: ``calls`` (factor + apply), ``factorizations``, ``applications``;
+    ``last_info`` describes the last :meth:`factor` (``status``, ``assemble_time``,
+    ``setup_time``, and ``method``/``positive_definite`` (direct) or ``levels``,
+    ``operator_complexity``, ``rebuilt`` (AMG)).
     """
 
     def __init__(self, cells, points, fixed, kind: str = "direct", **opts):
@@ -55,17 +77,20 @@ class HostLinearSolver:
         self.shape = (n, d)
         self.fixed = fixed.reshape(-1)
         self.pattern = SparsityPattern.build(cells, n, d, self.fixed)
-        self.solver = make_solver(kind, points=points, fixed=self.fixed, **opts)
+        self.backend = make_backend(
+            kind, points=points, fixed=self.fixed, pattern=self.pattern, **opts
+        )
         h = hashlib.sha1()
         for a in (np.ascontiguousarray(cells), np.ascontiguousarray(points), self.fixed):
             h.update(a.tobytes())
         self._key = (kind, n, d, h.hexdigest(), repr(sorted(opts.items())))
+        self._ready = False
         self.calls = 0
-        self.projected_calls = 0
-        self.adjoint_calls = 0
-        self.adjoint_refactorizations = 0
+        self.factorizations = 0
+        self.applications = 0
+        self.last_info: dict = {}
         # XLA may run independent host callbacks concurrently (e.g. two load cases that
-        # share this solver): one solve at a time, since they share the factorisation
+        # share this solver): one call at a time, since they share the factorisation
         self._lock = threading.Lock()
 
     @classmethod
@@ -73,102 +98,112 @@ class HostLinearSolver:
         """Build from a :class:`~jaxelastic.mesh.Mesh` and :class:`~jaxelastic.loads.Dirichlet`."""
         return cls(mesh.cells, mesh.points, bc.mask, kind, **opts)
 
-    def _matrix(self, Ke, mass_diag):
-        md = None
-        if mass_diag is not None and np.any(mass_diag):
-            md = np.repeat(np.asarray(mass_diag, dtype=np.float64), self.shape[1])
-            md[self.fixed] = 0.0
-        return self.pattern.assemble(Ke, diag=md)  # keeps the pattern (AMG reuse)
+    @property
+    def exact(self) -> bool:
+        """True when :meth:`apply` is an exact solve (``"direct"``), False for AMG."""
+        return isinstance(self.backend, DirectSolver)
 
-    def __call__(self, Ke, mass_diag, rhs, rtol):
-        """Solve ``K Δ = rhs`` (``rhs`` ``(n_nodes, dim)``, zero on fixed dofs).
-
-        Returns:
-            ``(Δ (n_nodes, dim), iterations int32, projected bool)``.
-        """
-        with self._lock:
-            return self._call(Ke, mass_diag, rhs, rtol)
-
-    def _call(self, Ke, mass_diag, rhs, rtol):
-        self.calls += 1
-        Ke = np.array(Ke, dtype=np.float64)
-        # autodiff Hessians are symmetric only to round-off (~1e-13); Cholesky reads one
-        # triangle while the residual check uses the whole matrix, so symmetrise first
-        Ke = 0.5 * (Ke + np.swapaxes(Ke, 1, 2))
-        b = np.array(rhs, dtype=np.float64, order="C").reshape(-1)  # writable, contiguous
-        K = self._matrix(Ke, mass_diag)
-        self.solver.update(K)
-        x, info = self.solver.solve(b, rtol=float(rtol))
-        projected = False
-        if not info.get("converged", True) or not np.all(np.isfinite(x)):
-            projected = True
-            self.projected_calls += 1
-            K = self._matrix(_project_psd_np(Ke), mass_diag)
-            self.solver.update(K)
-            x, info = self.solver.solve(b, rtol=float(rtol))
-        x = np.where(self.fixed, 0.0, x).reshape(self.shape).astype(np.asarray(rhs).dtype)
-        return x, np.int32(info.get("iterations", 1)), np.bool_(projected)
-
-    def _preconditioner(self):
-        """``r ↦ M⁻¹r`` from the current factorisation / AMG hierarchy, or None."""
-        sol = self.solver
-        if isinstance(sol, DirectSolver):
-            return sol._solve
-        if isinstance(sol, AMGSolver):
-            return None if sol.ml is None else sol.ml.aspreconditioner(cycle="V").matvec
-        return sol._M
-
-    def adjoint(self, Ke, mass_diag, rhs, rtol, reuse_iter=25):
-        """Solve ``K y = rhs`` with the exact Hessian at a converged solution (the adjoint
-        or tangent system of implicit differentiation); never PSD-projected.
-
-        PCG on the assembled ``K(x*)``, preconditioned first by the factorisation (or AMG
-        hierarchy) left by the last Newton step — the Hessian at the previous iterate,
-        within ``O(‖x* − x_{k−1}‖)`` of ``K(x*)`` — for at most ``reuse_iter`` iterations;
-        only if that leaves a residual above ``100·rtol`` is ``K(x*)`` itself factorised (or
-        given a hierarchy) and PCG continued from the iterate reached.
+    def assemble(self, Ke, mass_diag=None) -> sp.csr_matrix:
+        """Global matrix with Dirichlet elimination, ``(n_nodes*dim, n_nodes*dim)`` CSR.
 
         Args:
-            Ke: ``(n_cells, k·d, k·d)`` element Hessians at x*; mass_diag: ``(n_nodes,)``;
-            rhs: ``(n_nodes, dim)``, zero on fixed dofs; rtol: relative residual target.
+            Ke: ``(n_cells, k*dim, k*dim)`` element Hessians (symmetrised here).
+            mass_diag: ``(n_nodes,)`` diagonal added to every free dof of the node (e.g. a
+                lumped mass / h²), or ``None`` / zeros for none.
+
+        Fixed dofs get identity rows and columns; the pattern is kept (AMG reuse).
+        """
+        diag = None
+        if mass_diag is not None and np.any(mass_diag):
+            diag = np.repeat(np.asarray(mass_diag, dtype=np.float64), self.shape[1])
+            diag[self.fixed] = 0.0
+        return self.pattern.assemble(Ke, symmetrize=True, diag=diag)
+
+    def factor(self, Ke, mass_diag, token=None) -> np.ndarray:
+        """Assemble and factorise (direct) or build / refresh the hierarchy (AMG).
+
+        Args:
+            Ke: ``(n_cells, k*dim, k*dim)`` element Hessians (any float dtype).
+            mass_diag: ``(n_nodes,)`` diagonal term per node (zeros for none).
+            token: ignored; a data dependency that orders the callbacks.
 
         Returns:
-            ``(y (n_nodes, dim), iterations int32, converged bool)``; y is the best iterate
-            even when not converged (finite unless the matrix is not positive definite).
+            Status code, shape ``()`` int32: :data:`SUCCESS`, :data:`NONFINITE` or
+            :data:`NOT_POSITIVE_DEFINITE` (see the module docstring).
         """
         with self._lock:
             self.calls += 1
-            self.adjoint_calls += 1
-            Ke = np.array(Ke, dtype=np.float64)
-            Ke = 0.5 * (Ke + np.swapaxes(Ke, 1, 2))
-            b = np.array(rhs, dtype=np.float64, order="C").reshape(-1)
-            K = self._matrix(Ke, mass_diag)
-            rtol = float(rtol)
-            M = self._preconditioner()
-            y, info, its = None, dict(converged=False), 0
-            if M is not None:
-                y, info = _pcg(K, b, M, rtol, int(reuse_iter))
-                its += info["iterations"]
-                if not np.all(np.isfinite(y)):
-                    y = None
-            # refactorise only if the old preconditioner made poor progress: a true residual
-            # a little above rtol is the round-off floor of K·y (~1e-12 here), which a new
-            # factorisation would not lower (the caller's PCG certifies the final residual)
-            if not info["converged"] and not info.get("residual", np.inf) <= 100.0 * rtol:
-                self.adjoint_refactorizations += 1
-                self.solver.update(K)
-                M = self._preconditioner()
-                if M is not None:
-                    maxiter = getattr(self.solver, "maxiter", 200)
-                    y2, info = _pcg(K, b, M, rtol, maxiter, y)
-                    its += info["iterations"]
-                    if np.all(np.isfinite(y2)):
-                        y = y2
-            ok = y is not None and bool(info.get("residual", np.inf) <= rtol)
-            if y is None:
-                y = np.full_like(b, np.nan)
-            y = np.where(self.fixed, 0.0, y).reshape(self.shape).astype(np.asarray(rhs).dtype)
-            return y, np.int32(its), np.bool_(ok)
+            return np.int32(self._factor(Ke, mass_diag))
+
+    def _factor(self, Ke, mass_diag) -> Status:
+        t0 = time.perf_counter()
+        Ke = np.asarray(Ke, dtype=np.float64)
+        md = None if mass_diag is None else np.asarray(mass_diag, dtype=np.float64)
+        self._ready = False
+        if not (np.all(np.isfinite(Ke)) and (md is None or np.all(np.isfinite(md)))):
+            self.last_info = dict(status=NONFINITE, assemble_time=time.perf_counter() - t0)
+            return NONFINITE
+        K = self.assemble(Ke, md)
+        t_asm = time.perf_counter() - t0
+        self.factorizations += 1
+        self.backend.update(K)
+        self._ready = self.backend.ready
+        if isinstance(self.backend, DirectSolver):
+            pd = bool(self.backend.positive_definite)
+            info = dict(method=self.backend.method, positive_definite=pd)
+            info["setup_time"] = self.backend.setup_time
+        else:
+            pd = bool(np.all(K.diagonal()[~self.fixed] > 0))
+            info = self.backend.info()
+        status = SUCCESS if pd else NOT_POSITIVE_DEFINITE
+        self.last_info = dict(info, status=status, assemble_time=t_asm)
+        return status
+
+    def apply(self, r, token=None) -> np.ndarray:
+        """``K⁻¹ r`` (direct) or one V-cycle ``M⁻¹ r`` (AMG) with the last :meth:`factor`.
+
+        Args:
+            r: ``(..., n_nodes, dim)`` residual(s); leading axes are independent
+                right-hand sides (e.g. from a batched callback).
+            token: ignored; a data dependency that orders the callbacks.
+
+        Returns:
+            Array shaped and typed like ``r`` (computed in float64), zero on fixed dofs;
+            NaN on the free dofs when nothing is factorised (the last :meth:`factor`
+            reported :data:`NONFINITE`, or a singular matrix).
+        """
+        with self._lock:
+            self.calls += 1
+            return self._apply(r)
+
+    def factor_solve(self, Ke, mass_diag, r, token=None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`factor` then :meth:`apply` under one lock: ``(K⁻¹ r, status)``.
+
+        Use this (not two callbacks) where the result must come from *this* matrix: two
+        independent callback chains sharing one solver (e.g. two load cases in one jit)
+        may otherwise interleave a factorisation between the other's factor and apply.
+        """
+        with self._lock:
+            self.calls += 1
+            status = np.int32(self._factor(Ke, mass_diag))
+            return self._apply(r), status
+
+    def _apply(self, r) -> np.ndarray:
+        self.applications += 1
+        r_in = np.asarray(r)
+        n, d = self.shape
+        if r_in.shape[-2:] != (n, d):
+            raise ValueError(f"r must have shape (..., {n}, {d}), got {r_in.shape}")
+        b = np.array(r_in, dtype=np.float64).reshape(-1, n * d).T  # (n_dofs, m)
+        b[self.fixed] = 0.0
+        if not self._ready:
+            x = np.full_like(b, np.nan)
+        elif isinstance(self.backend, AMGSolver):
+            x = self.backend.precondition(b)
+        else:
+            x = self.backend.solve(np.ascontiguousarray(b))
+        x[self.fixed] = 0.0
+        return np.ascontiguousarray(x.T).reshape(r_in.shape).astype(r_in.dtype)
 
     def __eq__(self, other) -> bool:
         return isinstance(other, HostLinearSolver) and self._key == other._key

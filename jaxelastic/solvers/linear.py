@@ -1,69 +1,92 @@
-"""Matrix-free preconditioned conjugate gradients under ``jit``, and its preconditioners.
+"""Linear solvers of the Newton system: one device CG, and host back ends as its servants.
 
-Operators act on ``(n_nodes, dim)`` arrays. CG stops on the residual (``‖r‖ ≤ tol``), at
-``max_iter``, or on non-positive curvature ``pᵀAp ≤ 0`` (an indefinite Hessian far from
-equilibrium): then it returns the last iterate, or the preconditioned steepest-descent
-direction if that happens in the first iteration, and says so in its status.
+* :func:`cg` is the one conjugate-gradient loop of the library (``lax.while_loop``, under
+  ``jit``/``vmap``). It stops on the residual (``‖r‖ ≤ tol``), at ``max_iter``, or on
+  non-positive curvature ``pᵀAp ≤ 0`` (an indefinite Hessian far from equilibrium): then it
+  returns the last iterate, or the preconditioned steepest-descent direction if that
+  happens in the first iteration, and says so in its status.
+* Linear-solver objects are small frozen (hashable, static under jit) dataclasses:
+  :class:`CG` (matrix-free, block-Jacobi/Jacobi preconditioned), :class:`Direct` (sparse
+  Cholesky on the host) and :class:`AMG` (PyAMG smoothed aggregation on the host as the
+  preconditioner of :func:`cg`). String shortcuts ``"cg"``, ``"direct"``, ``"amg"`` and
+  ``"auto"`` are resolved by :func:`bind_linear`.
+* Host back ends are reached through ``jax.pure_callback``: the host only *factorises*
+  (assembles the element Hessians into CSR and factorises / builds a hierarchy) and
+  *applies* (an exact solve or one V-cycle); the iterations and the PSD projection of an
+  indefinite Hessian (:func:`jaxelastic.energy.project_psd`) stay in JAX. They cannot run
+  under ``vmap`` (one host factorisation is shared state: a clear error says so) nor on
+  traced meshes (the sparsity analysis needs the connectivity on the host).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import dataclasses
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ..energy import project_psd
+from ..potential import Potential, mass_diagonal, node_hessian_blocks
+from .host import HostLinearSolver
+from .results import Solution, Status
+
 __all__ = [
-    "CGResult",
-    "CG_CONVERGED",
-    "CG_MAX_ITER",
-    "CG_NEGATIVE_CURVATURE",
     "cg",
     "block_jacobi",
     "jacobi",
+    "CG",
+    "Direct",
+    "AMG",
+    "LinearSolver",
+    "NewtonSystem",
+    "bind_linear",
+    "LINEAR_SOLVERS",
+    "AUTO_DIRECT_MAX_DOFS",
 ]
 
-CG_CONVERGED = 0
-CG_MAX_ITER = 1
-CG_NEGATIVE_CURVATURE = 2
-
-
-class CGResult(NamedTuple):
-    """Result of :func:`cg`: solution ``(n, d)``, iterations, status code, residual norm."""
-
-    x: jax.Array
-    iterations: jax.Array
-    status: jax.Array
-    residual: jax.Array
+LINEAR_SOLVERS = ("auto", "cg", "direct", "amg")
+AUTO_DIRECT_MAX_DOFS = {2: 100_000, 3: 10_000}
+"""``"auto"``: sparse Cholesky up to this many dofs (per dimension), AMG-preconditioned CG
+above. 3D: measured by ``scripts/bench_linear.py`` (AMG is 20–70× faster than the
+simplicial factorisation from ~20k dofs on; the fill grows quickly in 3D). 2D: the fill of a
+nested-dissection factorisation stays small (Cook P1 at 33k dofs: Cholesky 1.1 s vs AMG-CG
+20 s, ``scripts/report_accuracy.py``)."""
 
 
 def _dot(a, b):
     return jnp.sum(a * b)
 
 
-def cg(A, b, M=None, *, tol, max_iter: int) -> CGResult:
-    """Solve ``A x = b`` for SPD ``A`` by preconditioned CG (jit-compatible).
+def cg(A: Callable, b: jax.Array, M: Callable | None = None, *, tol, max_iter: int, x0=None):
+    """Solve ``A x = b`` for SPD ``A`` by preconditioned CG (jit- and vmap-compatible).
 
     Args:
         A: linear operator ``v ↦ A v`` on arrays shaped like ``b``.
-        b: right-hand side ``(n, d)``.
+        b: right-hand side (any shape, e.g. ``(n_nodes, dim)``).
         M: preconditioner ``r ↦ M⁻¹ r`` (identity if None).
         tol: absolute residual tolerance (scalar, may be traced).
         max_iter: maximum iterations (static).
+        x0: initial guess (default zero).
+
+    Returns:
+        :class:`~jaxelastic.solvers.results.Solution` with ``status`` SUCCESS, MAX_STEPS or
+        NEGATIVE_CURVATURE and ``stats`` ``iterations``, ``residual`` (recurrence norm).
     """
     if M is None:
         M = lambda r: r
-    x0 = jnp.zeros_like(b)
-    r0 = b
+    if x0 is None:
+        x0, r0 = jnp.zeros_like(b), b
+    else:
+        r0 = b - A(x0)
     z0 = M(r0)
-    p0 = z0
-    rz0 = _dot(r0, z0)
     rn0 = jnp.sqrt(_dot(r0, r0))
+    running = jnp.asarray(-1, jnp.int32)
 
     def cond(s):
-        x, r, z, p, rz, rn, k, status = s
-        return (status < 0) & (k < max_iter)
+        return (s[-1] < 0) & (s[-2] < max_iter)
 
     def body(s):
         x, r, z, p, rz, rn, k, status = s
@@ -76,12 +99,10 @@ def cg(A, b, M=None, *, tol, max_iter: int) -> CGResult:
         rn_new = jnp.sqrt(_dot(r_new, r_new))
         z_new = M(r_new)
         rz_new = _dot(r_new, z_new)
-        beta = rz_new / jnp.where(rz == 0, 1.0, rz)
-        p_new = z_new + beta * p
+        p_new = z_new + rz_new / jnp.where(rz == 0, 1.0, rz) * p
         # on negative curvature keep the previous iterate (or z0 at k == 0)
-        x_keep = jnp.where(k == 0, z0, x)
-        x_out = jnp.where(neg, x_keep, x_new)
-        status_new = jnp.where(neg, CG_NEGATIVE_CURVATURE, jnp.where(rn_new <= tol, 0, -1))
+        x_out = jnp.where(neg, jnp.where(k == 0, x0 + z0, x), x_new)
+        st = jnp.where(neg, Status.NEGATIVE_CURVATURE, jnp.where(rn_new <= tol, 0, -1))
         return (
             x_out,
             jnp.where(neg, r, r_new),
@@ -90,14 +111,14 @@ def cg(A, b, M=None, *, tol, max_iter: int) -> CGResult:
             rz_new,
             jnp.where(neg, rn, rn_new),
             k + 1,
-            status_new,
+            st.astype(jnp.int32),
         )
 
-    init_status = jnp.where(rn0 <= tol, CG_CONVERGED, -1)
-    s0 = (x0, r0, z0, p0, rz0, rn0, jnp.asarray(0), init_status)
-    x, r, z, p, rz, rn, k, status = lax.while_loop(cond, body, s0)
-    status = jnp.where(status < 0, CG_MAX_ITER, status)
-    return CGResult(x=x, iterations=k, status=status, residual=rn)
+    status0 = jnp.where(rn0 <= tol, jnp.int32(Status.SUCCESS), running)
+    s0 = (x0, r0, z0, z0, _dot(r0, z0), rn0, jnp.asarray(0, jnp.int32), status0)
+    x, _, _, _, _, rn, k, status = lax.while_loop(cond, body, s0)
+    status = jnp.where(status < 0, jnp.int32(Status.MAX_STEPS), status)
+    return Solution(x=x, status=status, stats=dict(iterations=k, residual=rn))
 
 
 def block_jacobi(blocks: jax.Array, free: jax.Array):
@@ -136,3 +157,301 @@ def jacobi(blocks: jax.Array, free: jax.Array):
         return inv * r
 
     return apply
+
+
+class NewtonSystem(NamedTuple):
+    """The linear system of one Newton step (built inside the trace; not a user type).
+
+    Attributes:
+        pot: the potential; x: ``(n_nodes, dim)`` current positions.
+        free: ``(n_nodes, dim)`` bool, the free dofs.
+        Ke: ``(n_cells, k·d, k·d)`` elastic element Hessians at x (exact or projected, as
+            Newton's ``hessian`` setting asks), or None when nothing needs them.
+        H: the Hessian operator ``v ↦ (∂²Π/∂x²) v`` (unmasked).
+        A: the Dirichlet-masked operator ``v ↦ P_f H P_f v + P_D v``.
+        operator: ``Ke ↦ A`` built from given element Hessians (for the projected retry).
+    """
+
+    pot: Potential
+    x: jax.Array
+    free: jax.Array
+    Ke: Any
+    H: Callable
+    A: Callable
+    operator: Callable
+
+
+def _masked_diag(system: NewtonSystem):
+    md = mass_diagonal(system.pot)
+    return jnp.zeros(system.x.shape[:1], system.x.dtype) if md is None else md
+
+
+@dataclasses.dataclass(frozen=True)
+class CG:
+    """Matrix-free preconditioned CG under jit (vmap- and sharding-friendly).
+
+    Attributes:
+        preconditioner: ``"block_jacobi"`` (node blocks of the element Hessians),
+            ``"jacobi"`` or ``"none"`` (then Newton with ``hessian="hvp"`` builds no element
+            Hessian at all).
+        max_iter: iteration cap per linear solve.
+    """
+
+    preconditioner: str = "block_jacobi"
+    max_iter: int = 2000
+
+    def __post_init__(self):
+        if self.preconditioner not in ("block_jacobi", "jacobi", "none"):
+            raise ValueError(
+                "CG preconditioner must be 'block_jacobi', 'jacobi' or 'none', got "
+                f"{self.preconditioner!r}"
+            )
+        if int(self.max_iter) < 1:
+            raise ValueError(f"CG max_iter must be >= 1, got {self.max_iter!r}")
+
+    @property
+    def needs_element_hessians(self) -> bool:
+        return self.preconditioner != "none"
+
+    is_bound = True
+
+    def _M(self, system: NewtonSystem, kind: str):
+        if kind == "none" or system.Ke is None:
+            return None
+        blocks = node_hessian_blocks(system.pot, system.Ke)
+        return (block_jacobi if kind == "block_jacobi" else jacobi)(blocks, system.free)
+
+    def newton_step(self, system: NewtonSystem, rhs, tol) -> Solution:
+        """Inexact solve of the Newton system to ``‖r‖ ≤ tol``."""
+        M = self._M(system, self.preconditioner)
+        res = cg(system.A, rhs, M, tol=tol, max_iter=self.max_iter)
+        return res._replace(stats=dict(res.stats, projected=jnp.asarray(False)))
+
+    def exact(self, system: NewtonSystem, b, rtol, max_iter: int) -> Solution:
+        """Solve with the exact operator to ``‖r‖ ≤ rtol·‖b‖`` (adjoint/tangent systems):
+        block-Jacobi PCG."""
+        bn = jnp.sqrt(_dot(b, b))
+        M = self._M(system, "block_jacobi")
+        return cg(system.A, b, M, tol=rtol * bn, max_iter=max_iter)
+
+
+def _host_factor(backend: HostLinearSolver, Ke, md, token):
+    out = jax.ShapeDtypeStruct((), jnp.int32)
+    return _no_vmap_callback(backend.factor, out, Ke, md, token)
+
+
+def _host_apply(backend: HostLinearSolver, r, token):
+    out = jax.ShapeDtypeStruct(r.shape, r.dtype)
+    # the factorisation is not batched: a batch of right-hand sides is applied one by one
+    return jax.pure_callback(backend.apply, out, r, token, vmap_method="sequential")
+
+
+def _host_factor_solve(backend: HostLinearSolver, Ke, md, r, token):
+    out = (jax.ShapeDtypeStruct(r.shape, r.dtype), jax.ShapeDtypeStruct((), jnp.int32))
+    return _no_vmap_callback(backend.factor_solve, out, Ke, md, r, token)
+
+
+def _no_vmap_callback(fn, out, *args):
+    @jax.custom_batching.custom_vmap
+    def call(*a):
+        return jax.pure_callback(fn, out, *a)
+
+    @call.def_vmap
+    def _rule(axis_size, in_batched, *a):
+        if not any(jax.tree_util.tree_leaves(in_batched)):
+            return call(*a), False
+        raise ValueError(
+            "host linear solvers (Direct, AMG) cannot run under jax.vmap: one host "
+            "factorisation is shared by the whole batch; use linear='cg' (je.CG()) to vmap "
+            "over scenes"
+        )
+
+    return call(*args)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Host:
+    """Shared logic of the host back ends (:class:`Direct`, :class:`AMG`)."""
+
+    backend: HostLinearSolver | None = None
+
+    kind = "direct"
+    needs_element_hessians = True
+
+    @property
+    def is_bound(self) -> bool:
+        """Whether the host back end is built (:func:`bind_linear`)."""
+        return self.backend is not None
+
+    def _options(self) -> dict:
+        return {}
+
+    def bind(self, mesh, bc) -> _Host:
+        """This solver with its host back end built for ``mesh`` and ``bc.mask``."""
+        host = HostLinearSolver.for_problem(mesh, bc, self.kind, **self._options())
+        return dataclasses.replace(self, backend=host)
+
+    def _require(self) -> HostLinearSolver:
+        if self.backend is None:
+            raise ValueError(
+                f"{type(self).__name__}() is not bound to a mesh: call "
+                "je.solvers.bind_linear(solver, mesh, bc) outside jit (je.solve does it "
+                "when the mesh is concrete)"
+            )
+        return self.backend
+
+    def _factor_and_solve(self, system: NewtonSystem, A, Ke, md, rhs, tol, token):
+        """``(dx, iterations, status)`` with the host factorisation of ``Ke``."""
+        raise NotImplementedError
+
+    def newton_step(self, system: NewtonSystem, rhs, tol) -> Solution:
+        """Factorise the element Hessians on the host and solve; if the matrix is not
+        positive definite (or the solve meets negative curvature), PSD-project the element
+        Hessians in JAX (:func:`~jaxelastic.energy.project_psd`) and solve again."""
+        md = _masked_diag(system)
+        zero = jnp.asarray(0, jnp.int32)
+        dx, its, st = self._factor_and_solve(system, system.A, system.Ke, md, rhs, tol, zero)
+        bad = (st == Status.NOT_POSITIVE_DEFINITE) | (st == Status.NEGATIVE_CURVATURE)
+        bad = bad | ~jnp.all(jnp.isfinite(dx))
+
+        def retry(_):
+            Kp = project_psd(system.Ke)
+            A = system.operator(Kp)
+            dx2, its2, st2 = self._factor_and_solve(system, A, Kp, md, rhs, tol, st)
+            return dx2, its + its2, st2
+
+        dx, its, st = lax.cond(bad, retry, lambda _: (dx, its, st), None)
+        st = jnp.where(st == Status.NOT_POSITIVE_DEFINITE, jnp.int32(Status.SUCCESS), st)
+        stats = dict(iterations=its, residual=jnp.zeros((), rhs.dtype), projected=bad)
+        return Solution(x=dx * system.free, status=st.astype(jnp.int32), stats=stats)
+
+    def exact(self, system: NewtonSystem, b, rtol, max_iter: int) -> Solution:
+        """Device PCG on the exact operator, preconditioned by the host factorisation (or
+        AMG hierarchy) the last Newton step left — the Hessian at the previous iterate,
+        within ``O(‖x* − x_{k−1}‖)`` of K(x*) — for at most :attr:`reuse_iter` iterations;
+        only if that stalls is K(x*) itself factorised and PCG continued."""
+        backend = self._require()
+        bn = jnp.sqrt(_dot(b, b))
+        tol = rtol * bn
+        free = system.free
+
+        def M0(r):
+            return free * _host_apply(backend, r, jnp.asarray(0, jnp.int32))
+
+        first = cg(system.A, b, M0, tol=tol, max_iter=min(self.reuse_iter, max_iter))
+        y0 = jnp.where(jnp.all(jnp.isfinite(first.x)), first.x, 0.0)
+
+        def refactor(_):
+            token = _host_factor(backend, system.Ke, _masked_diag(system), first.status)
+
+            def M1(r):
+                return free * _host_apply(backend, r, token)
+
+            res = cg(system.A, b, M1, tol=tol, max_iter=max_iter, x0=y0)
+            its = res.stats["iterations"] + first.stats["iterations"]
+            return res._replace(stats=dict(res.stats, iterations=its))
+
+        done = first.status == Status.SUCCESS
+        return lax.cond(done, lambda _: first._replace(x=y0), refactor, None)
+
+    reuse_iter = 25
+
+
+@dataclasses.dataclass(frozen=True)
+class Direct(_Host):
+    """Sparse Cholesky on the host (CHOLMOD through cholespy; SciPy SuperLU fallback).
+
+    Attributes:
+        backend: the bound :class:`~jaxelastic.solvers.host.HostLinearSolver` (set by
+            :func:`bind_linear`; leave None).
+    """
+
+    kind = "direct"
+
+    def _factor_and_solve(self, system, A, Ke, md, rhs, tol, token):
+        # one callback: the step must come from this matrix's factorisation
+        dx, st = _host_factor_solve(self._require(), Ke, md, rhs, token)
+        return dx, jnp.asarray(1, jnp.int32), st
+
+
+@dataclasses.dataclass(frozen=True)
+class AMG(_Host):
+    """CG on the device preconditioned by PyAMG smoothed aggregation (rigid-body modes) on
+    the host: one V-cycle per CG iteration through a callback.
+
+    Attributes:
+        reuse: rebuild the hierarchy every ``reuse`` factorisations (Galerkin refresh of
+            the coarse operators in between).
+        max_iter: CG iteration cap.
+        backend: the bound host back end (set by :func:`bind_linear`).
+    """
+
+    reuse: int = 5
+    max_iter: int = 2000
+
+    kind = "amg"
+
+    def _options(self) -> dict:
+        return dict(reuse=self.reuse)
+
+    def _factor_and_solve(self, system, A, Ke, md, rhs, tol, token):
+        backend = self._require()
+        token = _host_factor(backend, Ke, md, token)
+
+        def M(r):
+            return system.free * _host_apply(backend, r, token)
+
+        res = cg(A, rhs, M, tol=tol, max_iter=self.max_iter)
+        st = jnp.where(token == Status.NOT_POSITIVE_DEFINITE, token, res.status)
+        return res.x, res.stats["iterations"], st
+
+
+LinearSolver = CG | Direct | AMG
+
+
+def _is_traced(tree) -> bool:
+    return any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(tree))
+
+
+def bind_linear(linear, mesh, bc) -> LinearSolver:
+    """Resolve a linear-solver choice for one scene (outside jit).
+
+    Args:
+        linear: ``"auto"`` (:class:`Direct` up to :data:`AUTO_DIRECT_MAX_DOFS` dofs,
+            :class:`AMG` above; :class:`CG` when the mesh is traced, e.g. passed as a jit
+            argument), ``"cg"``, ``"direct"``, ``"amg"``, None (= ``"auto"``) or a solver
+            object (host ones are bound to ``mesh`` and ``bc.mask`` unless already bound).
+        mesh: the :class:`~jaxelastic.mesh.Mesh`; bc: the
+            :class:`~jaxelastic.loads.Dirichlet` data (its mask fixes the pattern).
+
+    Raises:
+        ValueError: unknown name, or a host solver on a traced mesh.
+    """
+    if linear is None:
+        linear = "auto"
+    if isinstance(linear, str):
+        if linear not in LINEAR_SOLVERS:
+            raise ValueError(f"linear solver must be one of {LINEAR_SOLVERS}, got {linear!r}")
+        if linear == "auto":
+            if _is_traced((mesh.cells, mesh.points, bc.mask)):
+                return CG()
+            small = mesh.n_dofs <= AUTO_DIRECT_MAX_DOFS.get(mesh.dim, 10_000)
+            linear = "direct" if small else "amg"
+        linear = {"cg": CG, "direct": Direct, "amg": AMG}[linear]()
+    if isinstance(linear, CG):
+        return linear
+    if isinstance(linear, _Host):
+        if linear.backend is not None:
+            return linear
+        if _is_traced((mesh.cells, mesh.points, bc.mask)):
+            raise ValueError(
+                f"{type(linear).__name__}() needs the mesh and the Dirichlet mask on the "
+                "host, but they are traced here (passed as jit arguments): bind it first, "
+                "outside jit, with je.solvers.bind_linear(solver, mesh, bc), or use "
+                "linear='cg'"
+            )
+        return linear.bind(mesh, bc)
+    raise TypeError(
+        f"linear solver must be a name {LINEAR_SOLVERS} or je.CG/je.Direct/je.AMG, got "
+        f"{type(linear).__name__}"
+    )

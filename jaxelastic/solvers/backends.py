@@ -1,19 +1,21 @@
-"""Host-side sparse linear solvers (NumPy/SciPy) for the assembled Newton system.
+"""Host factorisation back ends (NumPy/SciPy) of the device conjugate-gradient loop.
 
-Assembly and the sparsity pattern live in :mod:`~jaxelastic.solvers.pattern` (re-exported
-here). The matrices handed to these solvers keep the full pattern, with Dirichlet dofs
-eliminated symmetrically (identity rows/columns).
-
-Three solvers share one interface, ``solver.update(K)`` then ``solver.solve(b, rtol)``:
+The device CG (:func:`jaxelastic.solvers.linear.cg`) runs every Krylov iteration; the host
+only factorises the assembled Newton matrix and applies the result. Each back end has
+``update(K)`` (factorise / build a hierarchy for an ``(n, n)`` sparse matrix) and one
+application:
 
 * :class:`DirectSolver`: sparse Cholesky (CHOLMOD through ``cholespy``), which also
-  certifies positive definiteness; SciPy's SuperLU as a fallback.
-* :class:`AMGSolver`: CG preconditioned by PyAMG smoothed aggregation with the rigid-body
-  near-null space (:func:`rigid_body_modes`), optionally reusing the hierarchy.
-* :class:`ScipyCGSolver`: Jacobi-preconditioned CG, for comparison only (it needs
-  hundreds of iterations on bending-dominated problems, see DESIGN §4).
+  certifies positive definiteness, SciPy's SuperLU as a fallback; :meth:`DirectSolver.solve`
+  is the exact solve ``K⁻¹b``.
+* :class:`AMGSolver`: PyAMG smoothed aggregation with the rigid-body near-null space
+  (:func:`~jaxelastic.solvers.pattern.rigid_body_modes`), optionally reusing the hierarchy;
+  :meth:`AMGSolver.precondition` is one V-cycle ``M⁻¹r``, an SPD preconditioner.
 
-Dof ordering is node-major everywhere: dof ``a*dim + i`` is component ``i`` of node ``a``.
+Assembly and the sparsity pattern live in :mod:`~jaxelastic.solvers.pattern`; the matrices
+handed to these back ends keep the full pattern, with Dirichlet dofs eliminated
+symmetrically (identity rows/columns). Dof ordering is node-major: dof ``a*dim + i`` is
+component ``i`` of node ``a``.
 """
 
 from __future__ import annotations
@@ -29,28 +31,9 @@ import scipy.sparse.linalg as spla
 
 from .pattern import SparsityPattern, rigid_body_modes
 
-__all__ = [
-    "SparsityPattern",
-    "rigid_body_modes",
-    "DirectSolver",
-    "AMGSolver",
-    "ScipyCGSolver",
-    "make_solver",
-    "SOLVER_KINDS",
-]
+__all__ = ["DirectSolver", "AMGSolver", "make_backend", "BACKEND_KINDS"]
 
-SOLVER_KINDS = ("direct", "amg", "cg-jacobi")
-
-
-# ----------------------------------------------------------------------------------------
-# linear solvers: update(K) then solve(b, rtol) -> (x, info)
-# ----------------------------------------------------------------------------------------
-
-
-def _rel_residual(K, x, b) -> float:
-    nb = float(np.linalg.norm(b))
-    r = float(np.linalg.norm(b - K @ x))
-    return r / nb if nb > 0 else r
+BACKEND_KINDS = ("direct", "amg")
 
 
 def _as_csr(K) -> sp.csr_matrix:
@@ -93,10 +76,10 @@ class DirectSolver:
     """Sparse direct solver: Cholesky (CHOLMOD via ``cholespy``) or SuperLU.
 
     Cholesky succeeds exactly when the matrix is positive definite, so a successful
-    :meth:`update` certifies that the Newton system is SPD. The SuperLU path (used when
-    ``cholespy`` is not installed, or with ``backend="splu"``) factorises with symmetric
-    diagonal pivoting and reads the inertia off ``diag(U)``, so it detects indefinite
-    matrices as well.
+    :meth:`update` certifies that the Newton system is SPD (``positive_definite``). The
+    SuperLU path (used when ``cholespy`` is not installed, or with ``backend="splu"``)
+    factorises with symmetric diagonal pivoting and reads the inertia off ``diag(U)``, so
+    it detects indefinite matrices as well.
 
     Cost (scripts/bench_linear.py): cholespy runs CHOLMOD's *simplicial* factorisation
     with a bundled reference BLAS, so in 3D it is 1.5–2.5x slower than SuperLU but uses
@@ -107,45 +90,43 @@ class DirectSolver:
     Args:
         backend: ``"auto"`` (cholespy if importable, else SuperLU), ``"cholespy"`` or
             ``"splu"``.
-        on_indefinite: ``"fail"``: :meth:`solve` returns NaNs with ``converged=False,
-            reason="not positive definite"``; ``"lu"``: solve the indefinite system by
-            LU anyway (``info["positive_definite"]`` stays ``False``).
-        refine: at most this many steps of iterative refinement when the relative
-            residual exceeds ``rtol``.
+        on_indefinite: ``"lu"``: when the matrix is not positive definite, factorise it by
+            pivoted LU so that :meth:`solve` still works (``positive_definite`` stays
+            False); ``"fail"``: keep no factorisation (:meth:`solve` returns NaNs).
         quiet: silence CHOLMOD's own "not positive definite" message on stdout.
     """
 
-    def __init__(
-        self,
-        *,
-        backend: str = "auto",
-        on_indefinite: str = "fail",
-        refine: int = 2,
-        quiet: bool = True,
-    ):
+    def __init__(self, *, backend: str = "auto", on_indefinite: str = "lu", quiet: bool = True):
         if backend not in ("auto", "cholespy", "splu"):
             raise ValueError(f"backend must be 'auto', 'cholespy' or 'splu', got {backend!r}")
         if on_indefinite not in ("fail", "lu"):
             raise ValueError(f"on_indefinite must be 'fail' or 'lu', got {on_indefinite!r}")
         if backend == "cholespy" and not _has_cholespy():
             raise ImportError("backend='cholespy' needs the cholespy package")
-        self.backend = "cholespy" if backend == "auto" and _has_cholespy() else backend
-        if self.backend == "auto":
-            self.backend = "splu"
+        if backend == "auto":
+            backend = "cholespy" if _has_cholespy() else "splu"
+        self.backend = backend
         self.on_indefinite = on_indefinite
-        self.refine = int(refine)
         self.quiet = quiet
-        self._K = None
         self._solve = None
+        self.n = None
         self.method = None
         self.positive_definite = None
         self.setup_time = 0.0
 
+    @property
+    def ready(self) -> bool:
+        """Whether a factorisation is available to :meth:`solve`."""
+        return self._solve is not None
+
     def update(self, K) -> None:
-        """Factorise ``K`` (``(n, n)`` symmetric sparse; Cholesky reads its lower triangle)."""
+        """Factorise ``K`` (``(n, n)`` symmetric sparse; Cholesky reads its lower triangle).
+
+        Sets ``positive_definite`` (bool) and ``method`` (``"cholesky"`` / ``"lu"``).
+        """
         t0 = time.perf_counter()
         K = _as_csr(K)
-        self._K = K
+        self.n = K.shape[0]
         self._solve = None
         self.positive_definite = None
         if self.backend == "cholespy":
@@ -163,6 +144,7 @@ class DirectSolver:
         indptr = np.ascontiguousarray(K.indptr, dtype=np.int32)
         indices = np.ascontiguousarray(K.indices, dtype=np.int32)
         data = np.ascontiguousarray(K.data, dtype=np.float64)
+        self.method = "cholesky"
         ctx = _quiet_stdout() if self.quiet else contextlib.nullcontext()
         try:
             with ctx:
@@ -171,7 +153,6 @@ class DirectSolver:
             if "positive definite" not in str(e):
                 raise
             self.positive_definite = False
-            self.method = "cholesky"
             return
 
         def solve(b):
@@ -181,11 +162,11 @@ class DirectSolver:
             return x
 
         self._solve = solve
-        self.method = "cholesky"
         self.positive_definite = True
 
     def _factor_splu(self, K, *, check_inertia: bool):
         opts = {"SymmetricMode": True} if check_inertia else {}
+        self.method = "lu"
         try:
             lu = spla.splu(
                 K.tocsc(),
@@ -195,111 +176,43 @@ class DirectSolver:
             )
         except RuntimeError:  # exactly singular
             self.positive_definite = False
-            self.method = "lu"
             return
         if check_inertia:
             # with P A Pᵀ = L U and no off-diagonal pivoting, U = D Lᵀ: inertia = signs of D
             same_perm = np.array_equal(lu.perm_r, lu.perm_c)
             self.positive_definite = bool(same_perm and np.all(lu.U.diagonal() > 0))
             if not self.positive_definite:  # refactorise with pivoting if asked (update)
-                self.method = "lu"
                 return
         elif self.positive_definite is None:
             self.positive_definite = False
         self._solve = lu.solve
-        self.method = "lu"
 
-    def solve(self, b, rtol: float = 1e-8) -> tuple[np.ndarray, dict]:
-        """Solve ``K x = b`` for ``b`` ``(n,)``.
+    def solve(self, b) -> np.ndarray:
+        """Exact solve ``K x = b`` with the current factorisation.
+
+        Args:
+            b: ``(n,)`` or ``(n, m)`` right-hand side(s).
 
         Returns:
-            ``x`` ``(n,)`` and ``info`` with ``iterations`` (1 + refinement steps),
-            ``converged``, ``residual`` (relative, ``‖b − Kx‖/‖b‖``), ``reason``,
-            ``method`` (``"cholesky"``/``"lu"``) and ``positive_definite``.
+            ``x`` shaped like ``b`` (float64); all NaN when no factorisation is available
+            (the matrix was singular, or not positive definite with ``on_indefinite="fail"``).
         """
-        if self._K is None:
+        if self.n is None:
             raise RuntimeError("call update(K) before solve(b)")
         b = np.asarray(b, dtype=np.float64)
-        info = dict(method=self.method, positive_definite=self.positive_definite)
+        if b.shape[0] != self.n:
+            raise ValueError(f"right-hand side has {b.shape[0]} rows, the matrix {self.n}")
         if self._solve is None:
-            x = np.full_like(b, np.nan)
-            info.update(iterations=0, converged=False, residual=np.inf)
-            info["reason"] = "not positive definite"
-            return x, info
-        x = self._solve(b)
-        res = _rel_residual(self._K, x, b)
-        it = 1
-        while res > rtol and it <= self.refine and np.isfinite(res):
-            x = x + self._solve(b - self._K @ x)
-            res = _rel_residual(self._K, x, b)
-            it += 1
-        ok = bool(np.isfinite(res) and res <= rtol)
-        info.update(iterations=it, converged=ok, residual=res)
-        if not ok:
-            info["reason"] = "residual above tolerance" if np.isfinite(res) else "non-finite"
-        elif not self.positive_definite:
-            info["reason"] = "not positive definite (solved by LU)"
-        else:
-            info["reason"] = "converged"
-        return x, info
-
-
-def _pcg(K, b, M, rtol: float, maxiter: int, x0=None) -> tuple[np.ndarray, dict]:
-    """Preconditioned CG on ``K x = b`` (``(n,)`` arrays), stopping at ``‖r‖ ≤ rtol·‖b‖``.
-
-    ``M`` maps a residual to a preconditioned residual. Unlike SciPy's ``cg`` this stops
-    at once on non-positive curvature ``pᵀKp ≤ 0`` (an indefinite Newton matrix) or a
-    non-positive ``rᵀMr`` (a preconditioner that is not SPD) and says so in ``reason``.
-    """
-    b = np.asarray(b, dtype=np.float64)
-    nb = float(np.linalg.norm(b))
-    if nb == 0.0:
-        info = dict(iterations=0, converged=True, residual=0.0, reason="zero right-hand side")
-        return np.zeros_like(b), info
-    x = np.zeros_like(b) if x0 is None else np.array(x0, dtype=np.float64).reshape(b.shape)
-    r = b - K @ x if x0 is not None else b.copy()
-    tol = rtol * nb
-    reason = "max iterations"
-    it = 0
-    if np.linalg.norm(r) <= tol:
-        reason = "converged"
-    else:
-        z = M(r)
-        rz = float(r @ z)
-        p = z.copy()
-        while it < maxiter:
-            if not rz > 0.0:
-                reason = "preconditioner not positive definite"
-                break
-            Kp = K @ p
-            pKp = float(p @ Kp)
-            it += 1
-            if not pKp > 0.0:
-                reason = "negative curvature (matrix not positive definite)"
-                break
-            alpha = rz / pKp
-            x += alpha * p
-            r -= alpha * Kp
-            if np.linalg.norm(r) <= tol:
-                reason = "converged"
-                break
-            z = M(r)
-            rz_new = float(r @ z)
-            p *= rz_new / rz
-            p += z
-            rz = rz_new
-    res = _rel_residual(K, x, b)  # the true residual, not the recurrence
-    ok = bool(reason == "converged" and np.isfinite(res) and res <= 1.01 * rtol)
-    if reason == "converged" and not ok:
-        reason = "residual above tolerance (recurrence drifted)"
-    return x, dict(iterations=it, converged=ok, residual=res, reason=reason)
+            return np.full_like(b, np.nan)
+        return self._solve(b)
 
 
 class AMGSolver:
-    """CG preconditioned by smoothed-aggregation AMG (PyAMG) with rigid-body modes.
+    """Smoothed-aggregation AMG (PyAMG) with rigid-body modes: an SPD preconditioner.
 
     Args:
-        points: ``(n_nodes, dim)`` node positions for :func:`rigid_body_modes`.
+        points: ``(n_nodes, dim)`` node positions for
+            :func:`~jaxelastic.solvers.pattern.rigid_body_modes`.
         fixed: ``(n_nodes*dim,)`` bool Dirichlet mask (rows of the modes zeroed).
         reuse: rebuild the hierarchy (aggregates, prolongators) every ``reuse`` calls to
             :meth:`update`; 1 rebuilds every time. Measured on the twist (5 matrices along a
@@ -307,13 +220,13 @@ class AMGSolver:
             with ``reuse=5`` 5.8 s at unchanged iteration counts (13–14), hence the default.
         refresh: between rebuilds, ``"galerkin"`` keeps P and R but recomputes the
             coarse operators ``R A P`` and smoothers for the new matrix; ``"none"`` keeps
-            the old preconditioner as is (CG still runs on the new matrix).
-        maxiter: CG iteration cap.
+            the old hierarchy as is (a preconditioner for a nearby matrix).
+        cycle: multigrid cycle of one :meth:`precondition` (``"V"``, ``"W"``, ``"F"``).
         sa_options: overrides for ``pyamg.smoothed_aggregation_solver``.
         block: hand PyAMG the matrix as BSR with ``(dim, dim)`` node blocks (node-wise
             aggregation and block Gauss–Seidel smoothing).
-        pattern: optional :class:`SparsityPattern` of the matrices, for a fast CSR→BSR
-            conversion.
+        pattern: optional :class:`~jaxelastic.solvers.pattern.SparsityPattern` of the
+            matrices, for a fast CSR→BSR conversion.
     """
 
     def __init__(
@@ -323,7 +236,7 @@ class AMGSolver:
         *,
         reuse: int = 5,
         refresh: str = "galerkin",
-        maxiter: int = 2000,
+        cycle: str = "V",
         sa_options: dict | None = None,
         block: bool = True,
         pattern: SparsityPattern | None = None,
@@ -337,7 +250,7 @@ class AMGSolver:
         self.B = rigid_body_modes(pts, fixed)
         self.reuse = int(reuse)
         self.refresh = refresh
-        self.maxiter = int(maxiter)
+        self.cycle = cycle
         self.block = block
         self.pattern = pattern
         self.sa_options = dict(
@@ -350,7 +263,7 @@ class AMGSolver:
         )
         self.sa_options.update(sa_options or {})
         self.ml = None
-        self._K = None
+        self._M = None
         self._updates_since_build = 0
         self.setup_time = 0.0
         self.rebuilt = False
@@ -370,9 +283,10 @@ class AMGSolver:
         K = _as_csr(K)
         if K.shape[0] != self.B.shape[0]:
             raise ValueError(f"matrix has {K.shape[0]} rows, the modes {self.B.shape[0]}")
-        self._K = K
+        self._M = None
         A = self._amg_matrix(K)
         if self.ml is None or self._updates_since_build >= self.reuse:
+            self.ml = None
             self.ml = pyamg.smoothed_aggregation_solver(A, B=self.B, **self.sa_options)
             self._updates_since_build = 1
             self.rebuilt = True
@@ -381,6 +295,7 @@ class AMGSolver:
                 self._galerkin(A)
             self._updates_since_build += 1
             self.rebuilt = False
+        self._M = self.ml.aspreconditioner(cycle=self.cycle).matvec
         self.setup_time = time.perf_counter() - t0
 
     def _galerkin(self, A):
@@ -395,66 +310,48 @@ class AMGSolver:
         change_smoothers(self.ml, self.sa_options["presmoother"], self.sa_options["postsmoother"])
         self.ml.coarse_solver = coarse_grid_solver(self.sa_options["coarse_solver"])
 
-    def solve(self, b, rtol: float = 1e-8, x0=None) -> tuple[np.ndarray, dict]:
-        """AMG-preconditioned CG on ``K x = b``, ``b`` ``(n,)``, stopping at
-        ``‖b − Kx‖ ≤ rtol·‖b‖``.
+    @property
+    def ready(self) -> bool:
+        """Whether a hierarchy is available to :meth:`precondition`."""
+        return self._M is not None
+
+    def precondition(self, r) -> np.ndarray:
+        """One multigrid cycle from a zero guess: ``z = M⁻¹ r``.
+
+        Args:
+            r: ``(n,)`` or ``(n, m)`` residual(s).
 
         Returns:
-            ``x`` ``(n,)`` and ``info`` (``iterations``, ``converged``, ``residual``,
-            ``reason``, ``levels``, ``operator_complexity``, ``rebuilt``).
+            ``z`` shaped like ``r`` (float64); symmetric positive definite in ``r`` for an
+            SPD matrix (symmetric smoothing, exact coarsest solve).
         """
+        if self._M is None:
+            raise RuntimeError("call update(K) before precondition(r)")
+        r = np.asarray(r, dtype=np.float64)
+        if r.ndim == 1:
+            return np.asarray(self._M(r), dtype=np.float64).reshape(r.shape)
+        return np.stack([self._M(np.ascontiguousarray(c)) for c in r.T], axis=1)
+
+    def info(self) -> dict:
+        """``levels``, ``operator_complexity``, ``rebuilt``, ``setup_time`` of the hierarchy."""
         if self.ml is None:
-            raise RuntimeError("call update(K) before solve(b)")
-        M = self.ml.aspreconditioner(cycle="V").matvec
-        x, info = _pcg(self._K, b, M, rtol, self.maxiter, x0)
-        info.update(
+            return dict(levels=0, operator_complexity=0.0, rebuilt=False, setup_time=0.0)
+        return dict(
             levels=len(self.ml.levels),
             operator_complexity=float(self.ml.operator_complexity()),
             rebuilt=self.rebuilt,
+            setup_time=self.setup_time,
         )
-        return x, info
 
 
-class ScipyCGSolver:
-    """Jacobi-preconditioned CG, a baseline: slow on bending (DESIGN §4).
-
-    Args:
-        maxiter: CG iteration cap.
-    """
-
-    def __init__(self, *, maxiter: int = 20000):
-        self.maxiter = int(maxiter)
-        self._K = None
-        self._M = None
-        self.setup_time = 0.0
-
-    def update(self, K) -> None:
-        """Set the matrix ``(n, n)`` SPD sparse and its inverse diagonal."""
-        t0 = time.perf_counter()
-        K = _as_csr(K)
-        diag = K.diagonal()
-        if np.any(diag <= 0):
-            raise ValueError("Jacobi preconditioner needs a positive diagonal")
-        inv = 1.0 / diag
-        self._K = K
-        self._M = lambda r: inv * r
-        self.setup_time = time.perf_counter() - t0
-
-    def solve(self, b, rtol: float = 1e-8, x0=None) -> tuple[np.ndarray, dict]:
-        """Jacobi-CG on ``K x = b``; same return convention as :meth:`AMGSolver.solve`."""
-        if self._K is None:
-            raise RuntimeError("call update(K) before solve(b)")
-        return _pcg(self._K, b, self._M, rtol, self.maxiter, x0)
-
-
-def make_solver(kind: str, points=None, fixed=None, **opts):
-    """Build a host linear solver by name.
+def make_backend(kind: str, points=None, fixed=None, pattern=None, **opts):
+    """Build a host factorisation back end by name.
 
     Args:
-        kind: ``"direct"`` (:class:`DirectSolver`), ``"amg"`` (:class:`AMGSolver`) or
-            ``"cg-jacobi"`` (:class:`ScipyCGSolver`).
+        kind: ``"direct"`` (:class:`DirectSolver`) or ``"amg"`` (:class:`AMGSolver`).
         points: ``(n_nodes, dim)`` node positions (needed by ``"amg"``).
         fixed: ``(n_nodes*dim,)`` bool Dirichlet mask (used by ``"amg"``).
+        pattern: optional :class:`~jaxelastic.solvers.pattern.SparsityPattern` (``"amg"``).
         **opts: keyword options of the chosen class.
 
     Raises:
@@ -464,8 +361,6 @@ def make_solver(kind: str, points=None, fixed=None, **opts):
         return DirectSolver(**opts)
     if kind == "amg":
         if points is None:
-            raise ValueError("make_solver('amg', ...) needs the node positions `points`")
-        return AMGSolver(points, fixed, **opts)
-    if kind == "cg-jacobi":
-        return ScipyCGSolver(**opts)
-    raise ValueError(f"unknown solver kind {kind!r}; valid kinds: {', '.join(SOLVER_KINDS)}")
+            raise ValueError("make_backend('amg', ...) needs the node positions `points`")
+        return AMGSolver(points, fixed, pattern=pattern, **opts)
+    raise ValueError(f"unknown solver kind {kind!r}; valid kinds: {', '.join(BACKEND_KINDS)}")

@@ -48,8 +48,12 @@ __all__ = [
     "TET10",
     "TRI3X4",
     "TET4X8",
+    "TRI_EDGES",
+    "TET_EDGES",
     "get_element",
     "facet_rule",
+    "edge_table",
+    "ref_nodes",
 ]
 
 _SQ = np.sqrt
@@ -96,8 +100,18 @@ def _gauss_line3():
 
 
 # local edges (pairs of corners) of the P2 mid-nodes, in meshio/VTK order
-_TRI_EDGES = ((0, 1), (1, 2), (2, 0))
-_TET_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
+TRI_EDGES = ((0, 1), (1, 2), (2, 0))
+TET_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
+
+
+def edge_table(element: Element) -> np.ndarray:
+    """``(n_edges, 2)`` local corner pairs of an element's edges, in the order of the P2
+    mid-edge nodes (meshio/VTK): 3 edges for a triangle, 6 for a tetrahedron.
+
+    Args:
+        element: an :class:`Element` (only its ``dim`` is used).
+    """
+    return np.asarray(TRI_EDGES if element.dim == 2 else TET_EDGES)
 
 
 def _bary(xi: np.ndarray) -> np.ndarray:
@@ -123,10 +137,11 @@ def _p2_gradients(xi: np.ndarray, edges) -> np.ndarray:
     return np.concatenate([g_corner, g_mid], axis=1)
 
 
-def _ref_nodes(dim: int) -> np.ndarray:
-    """Reference coordinates of the P2 nodes, ``(n_nodes, dim)``."""
+def ref_nodes(dim: int) -> np.ndarray:
+    """Reference coordinates of the P2 nodes (corners, then edge mid-points),
+    ``(n_nodes, dim)``; ``dim`` is 2 (6 nodes) or 3 (10 nodes)."""
     corners = np.concatenate([np.zeros((1, dim)), np.eye(dim)])
-    edges = _TRI_EDGES if dim == 2 else _TET_EDGES
+    edges = TRI_EDGES if dim == 2 else TET_EDGES
     return np.concatenate([corners, [(corners[a] + corners[b]) / 2 for a, b in edges]])
 
 
@@ -210,7 +225,7 @@ class Element:
             return _bary(xi)
         if self.is_composite:
             raise ValueError(f"{self.name!r} is piecewise linear; use sub_cells")
-        return _p2_values(xi, _TRI_EDGES if self.dim == 2 else _TET_EDGES)
+        return _p2_values(xi, TRI_EDGES if self.dim == 2 else TET_EDGES)
 
     def shape_gradients(self, xi=None) -> np.ndarray:
         """Reference gradients ``∂N_a/∂ξ_j``, ``(n_q, n_nodes, dim)``, at the quadrature
@@ -218,7 +233,7 @@ class Element:
         if self.is_composite:
             if xi is not None:
                 raise ValueError(f"{self.name!r} gradients are defined per sub-simplex")
-            nodes = _ref_nodes(self.dim)
+            nodes = ref_nodes(self.dim)
             g1 = np.concatenate([-np.ones((1, self.dim)), np.eye(self.dim)])
             out = np.zeros((len(self.sub_cells), self.n_nodes, self.dim))
             for s, sub in enumerate(self.sub_cells):
@@ -230,7 +245,7 @@ class Element:
         if self.n_nodes == self.dim + 1:
             g = np.concatenate([-np.ones((1, self.dim)), np.eye(self.dim)])
             return np.broadcast_to(g, (q.shape[0], self.n_nodes, self.dim)).copy()
-        return _p2_gradients(q, _TRI_EDGES if self.dim == 2 else _TET_EDGES)
+        return _p2_gradients(q, TRI_EDGES if self.dim == 2 else TET_EDGES)
 
     def mass_rule(self) -> tuple[np.ndarray, np.ndarray]:
         """A rule exact to degree ≥ 4 on the reference simplex (for ``∫N_a N_b``), as
@@ -245,7 +260,7 @@ _TET_FACETS = ((0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2))
 
 
 def _p2_facets(dim: int) -> tuple:
-    edges = _TRI_EDGES if dim == 2 else _TET_EDGES
+    edges = TRI_EDGES if dim == 2 else TET_EDGES
     mid = {frozenset(e): dim + 1 + i for i, e in enumerate(edges)}
     out = []
     for f in _TRI_FACETS if dim == 2 else _TET_FACETS:
@@ -255,7 +270,7 @@ def _p2_facets(dim: int) -> tuple:
 
 
 def _composite(name, dim, meshio_type, sub):
-    nodes = _ref_nodes(dim)
+    nodes = ref_nodes(dim)
     sub = _oriented(sub, nodes)
     ref = 0.5 if dim == 2 else 1.0 / 6.0
     cents = tuple(tuple(nodes[list(s)].mean(axis=0)) for s in sub)
@@ -315,7 +330,7 @@ def facet_rule(element: Element) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     else:
         (p, w), facet_dim = _tri_deg4(), 2
         p = np.asarray(p)
-        nodes = _ref_nodes(2)
+        nodes = ref_nodes(2)
         subs = _TRI_SUB
     w = np.asarray(w)
     kind = element.facet_kind
@@ -329,7 +344,7 @@ def facet_rule(element: Element) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             N = np.stack([(1 - s) * (1 - 2 * s), s * (2 * s - 1), 4 * s * (1 - s)], axis=1)
             dN = np.stack([4 * s - 3, 4 * s - 1, 4 - 8 * s], axis=1)[:, :, None]
             return N, dN, w
-        return _p2_values(p, _TRI_EDGES), _p2_gradients(p, _TRI_EDGES), w
+        return _p2_values(p, TRI_EDGES), _p2_gradients(p, TRI_EDGES), w
     # composite: map the rule into each sub-facet, piecewise-linear shape functions
     Ns, dNs, ws = [], [], []
     g1 = np.concatenate([-np.ones((1, facet_dim)), np.eye(facet_dim)])

@@ -1,4 +1,4 @@
-"""P1 → P2 / composite conversion, formulation switch and views of quadratic meshes.
+"""P1 → P2 / composite lifting, the formulation switch, and views of quadratic meshes.
 
 Re-exported by :mod:`jaxelastic.mesh` (``jaxelastic.mesh.to_quadratic`` etc.).
 """
@@ -9,15 +9,10 @@ import dataclasses
 
 import numpy as np
 
-from .elements import _TET_EDGES, _TRI_EDGES, TET4X8, TRI3X4, Element
-from .mesh import Mesh, _check_formulation, from_arrays
+from .core import Mesh, check_formulation, from_arrays
+from .elements import TET4X8, TRI3X4, edge_table
 
 __all__ = ["to_quadratic", "with_formulation", "vertex_nodes", "linear_cells"]
-
-
-def _edge_table(element: Element):
-    """``(n_edges, 2)`` local corner pairs of the P2 mid-edge nodes (meshio/VTK order)."""
-    return np.asarray(_TRI_EDGES if element.dim == 2 else _TET_EDGES)
 
 
 def to_quadratic(mesh: Mesh, *, composite: bool = False, formulation: str | None = None) -> Mesh:
@@ -43,7 +38,7 @@ def to_quadratic(mesh: Mesh, *, composite: bool = False, formulation: str | None
         formulation = "fbar" if composite else mesh.formulation
     cells = np.asarray(mesh.cells, dtype=np.int64)
     X = np.asarray(mesh.points, dtype=np.float64)
-    loc = _edge_table(el)  # (e, 2)
+    loc = edge_table(el)  # (e, 2)
     pairs = np.sort(cells[:, loc], axis=2)  # (c, e, 2)
     edges, inv = np.unique(pairs.reshape(-1, 2), axis=0, return_inverse=True)
     mids = X[edges].mean(axis=1)
@@ -66,7 +61,7 @@ def with_formulation(mesh: Mesh, formulation: str) -> Mesh:
         ValueError: unknown formulation, or F-bar/B-bar on a P1 mesh (one quadrature point
             per cell: F-bar would change nothing; use ``to_quadratic(mesh, composite=True)``).
     """
-    _check_formulation(formulation)
+    check_formulation(formulation)
     el = mesh.element_type
     if formulation != "standard" and el.n_nodes == el.dim + 1:
         raise ValueError(

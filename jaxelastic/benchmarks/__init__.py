@@ -1,0 +1,47 @@
+"""Reference problems with known answers, for scripts, tests and notebooks.
+
+Each builder returns a :class:`Benchmark`: the potential (mesh, ψ, parameters, loads), the
+Dirichlet data, and the reference values with their citations. Definitions only: nothing
+here solves (``je.solve(b.pot, b.bc)`` does).
+
+* Cook's membrane (:mod:`~jaxelastic.benchmarks.cook`): :func:`cook_linear`,
+  :func:`cook_incompressible`, :func:`cook_neo_hookean`.
+* Cantilevers (:mod:`~jaxelastic.benchmarks.cantilever`): :func:`timoshenko_cantilever`
+  with its exact field :func:`timoshenko_exact`; :func:`cantilever3d` against
+  :func:`beam_deflection`.
+* Patch tests (:mod:`~jaxelastic.benchmarks.patch`): :func:`macneal_harder_patch`,
+  :func:`affine_patch`.
+* Homogeneous states (:mod:`~jaxelastic.benchmarks.homogeneous`): :func:`uniaxial_tension`,
+  :func:`simple_shear`.
+* The JAX-FEM twist (:mod:`~jaxelastic.benchmarks.twist`): :func:`twist`.
+"""
+
+from .cantilever import CANTILEVER3D as CANTILEVER3D
+from .cantilever import TIMOSHENKO as TIMOSHENKO
+from .cantilever import beam_deflection as beam_deflection
+from .cantilever import cantilever3d as cantilever3d
+from .cantilever import timoshenko_cantilever as timoshenko_cantilever
+from .cantilever import timoshenko_exact as timoshenko_exact
+from .cook import COOK_INCOMPRESSIBLE_REF as COOK_INCOMPRESSIBLE_REF
+from .cook import COOK_LINEAR_REF as COOK_LINEAR_REF
+from .cook import COOK_NEO_HOOKEAN_REF as COOK_NEO_HOOKEAN_REF
+from .cook import cook_incompressible as cook_incompressible
+from .cook import cook_linear as cook_linear
+from .cook import cook_neo_hookean as cook_neo_hookean
+from .homogeneous import pull_bc as pull_bc
+from .homogeneous import simple_shear as simple_shear
+from .homogeneous import uniaxial_tension as uniaxial_tension
+from .patch import MH_POINTS as MH_POINTS
+from .patch import MH_QUADS as MH_QUADS
+from .patch import PATCH_C as PATCH_C
+from .patch import PATCH_F0 as PATCH_F0
+from .patch import affine_patch as affine_patch
+from .patch import macneal_harder_patch as macneal_harder_patch
+from .patch import patch_mesh as patch_mesh
+from .problem import Benchmark as Benchmark
+from .problem import edge_load_2d as edge_load_2d
+from .problem import node_at as node_at
+from .twist import TWIST_THETA as TWIST_THETA
+from .twist import isochoric_neo_hookean as isochoric_neo_hookean
+from .twist import twist as twist
+from .twist import twist_displacement as twist_displacement

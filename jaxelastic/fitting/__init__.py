@@ -1,0 +1,41 @@
+"""Material identification: fit any parameter of any ψ (shared, per region or per cell).
+
+* :mod:`~jaxelastic.fitting.transforms`: ``Positive``, ``Bounded``, ``Free``, ``Fixed``;
+* :mod:`~jaxelastic.fitting.parameters`: :class:`Parametrization` of a parameter pytree
+  (transforms, spatial layout, regularisation over adjacent regions);
+* :mod:`~jaxelastic.fitting.elastic`: the (E, ν) convenience, :class:`Material`;
+* :mod:`~jaxelastic.fitting.observations`: misfit, noise, markers, nested meshes;
+* :mod:`~jaxelastic.fitting.cases`: the case protocol, :class:`LoadCase`,
+  :class:`TrajectoryCase`;
+* :mod:`~jaxelastic.fitting.objective`: the compiled objective in unconstrained variables;
+* :mod:`~jaxelastic.fitting.fit`: :func:`fit` with optax;
+* :mod:`~jaxelastic.fitting.identifiability`: :func:`loss_landscape`, :func:`loss_hessian`.
+"""
+
+from .cases import Case as Case
+from .cases import CaseAux as CaseAux
+from .cases import LoadCase as LoadCase
+from .cases import TrajectoryCase as TrajectoryCase
+from .elastic import LameOf as LameOf
+from .elastic import Material as Material
+from .elastic import material_parametrization as material_parametrization
+from .fit import FitResult as FitResult
+from .fit import fit as fit
+from .identifiability import loss_hessian as loss_hessian
+from .identifiability import loss_landscape as loss_landscape
+from .objective import FIT_SOLVER as FIT_SOLVER
+from .objective import Objective as Objective
+from .objective import make_objective as make_objective
+from .objective import parametrize as parametrize
+from .observations import add_noise as add_noise
+from .observations import choose_markers as choose_markers
+from .observations import nested_nodes as nested_nodes
+from .observations import observation_loss as observation_loss
+from .parameters import Parametrization as Parametrization
+from .parameters import make_parametrization as make_parametrization
+from .parameters import region_adjacency as region_adjacency
+from .transforms import Bounded as Bounded
+from .transforms import Fixed as Fixed
+from .transforms import Free as Free
+from .transforms import Positive as Positive
+from .transforms import Transform as Transform

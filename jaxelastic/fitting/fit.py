@@ -1,0 +1,325 @@
+"""Material identification with optax: :func:`fit` and its :class:`FitResult`.
+
+:func:`fit` minimises ``Σ_c w_c·loss_c + regulariser`` over the unconstrained variables of
+a :class:`~jaxelastic.fitting.parameters.Parametrization` (any ψ parameter pytree, or
+(E, ν) through :class:`~jaxelastic.fitting.Material`) with optax — L-BFGS directions with a
+host backtracking line search by default, or any optax transformation — warm-starting
+every forward solve from the previous iterate's solution of the same case.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..solvers import GradientError, ImplicitAdjoint, Newton
+from .elastic import Material
+from .objective import FIT_SOLVER, Objective, make_objective
+
+__all__ = ["FitResult", "fit"]
+
+_CONVERGED = ("gtol", "ftol", "xtol", "roundoff")
+_ARMIJO = 1e-4
+_ROUNDOFF = 1e-12  # predicted decrease below this × loss: no measurable progress possible
+
+
+@functools.cache
+def _named_optimizer(name: str, learning_rate: float):
+    import optax
+
+    if name == "lbfgs":
+        return optax.lbfgs(linesearch=None)
+    if name == "adam":
+        return optax.adam(learning_rate)
+    raise ValueError(f"optimizer must be 'lbfgs', 'adam' or an optax transformation, got {name!r}")
+
+
+@functools.cache
+def _update_fn(optimizer):
+    return jax.jit(optimizer.update)
+
+
+class FitResult(NamedTuple):
+    """Result of :func:`fit`.
+
+    Attributes:
+        material: the fitted parameters in ``init``'s structure (region form: floats for
+            shared scalars, ``(n_regions,)`` arrays per region), e.g. a :class:`Material`.
+        E, nu: the fitted (E, ν) when ``init`` is a :class:`Material`, else None.
+        loss: final loss.
+        converged: a stopping criterion met (else ``max_iter`` reached or stalled).
+        stop_reason: ``"gtol"``, ``"ftol"``, ``"xtol"``, ``"roundoff"`` (the line search's
+            predicted decrease fell below 1e-12 × loss: no measurable progress is possible;
+            counted as converged), ``"stalled"`` (line search or failed solves) or
+            ``"max_iter"``.
+        iterations: optimiser iterations k.
+        loss_history: ``(k + 1,)`` loss at each iterate.
+        param_history: every leaf per iterate, in leaf order: ``(k + 1, n_leaves)`` for
+            scalars (``(k + 1, 2)`` for (E, ν)), ``(k + 1, n_leaves, n_regions)`` with
+            regions, or ``(k + 1, n_values)`` (leaves raveled) when shapes differ.
+        grad_norm_history: ``(k + 1,)`` gradient norm w.r.t. the unconstrained variables.
+        newton_steps: ``(k + 1, n_cases)`` Newton iterations of each case's forward solve(s)
+            per iteration (summed over its line-search trials; row 0: the initial guess).
+        linear_iterations: ``(k + 1, n_cases)`` linear-solver iterations, likewise.
+        solutions: final warm start (equilibrium positions) per case.
+        z: final unconstrained vector.
+        wall_time: seconds, including compilation.
+    """
+
+    material: Any
+    E: Any
+    nu: Any
+    loss: float
+    converged: bool
+    stop_reason: str
+    iterations: int
+    loss_history: np.ndarray
+    param_history: np.ndarray
+    grad_norm_history: np.ndarray
+    newton_steps: np.ndarray
+    linear_iterations: np.ndarray
+    solutions: list
+    z: np.ndarray
+    wall_time: float
+
+    @property
+    def params(self):
+        """Alias of :attr:`material` (the fitted parameter pytree)."""
+        return self.material
+
+
+def _param_row(params) -> np.ndarray:
+    leaves = [np.asarray(v, dtype=np.float64) for v in jax.tree_util.tree_leaves(params)]
+    try:
+        return np.stack(np.broadcast_arrays(*leaves))
+    except ValueError:
+        return np.concatenate([v.ravel() for v in leaves])
+
+
+def _reported(params):
+    """Region-form parameters as host values: floats for scalars, NumPy arrays otherwise."""
+    return jax.tree_util.tree_map(lambda v: float(v) if np.ndim(v) == 0 else np.asarray(v), params)
+
+
+class _Tracker:
+    """Evaluations of the objective at trial points, with per-iterate counters and history."""
+
+    def __init__(self, obj: Objective):
+        self.obj = obj
+        self.counts = np.zeros((2, len(obj.cases)), int)  # Newton / linear its this iterate
+        self.hist = dict(loss=[], p=[], g=[], nw=[], lin=[])
+
+    def evaluate(self, z, warms):
+        """``(loss, auxs, grad, ok)`` at z; ok: every solve converged, all finite."""
+        (f, auxs), g = self.obj.value_and_grad(z, warms, check=False)
+        self.counts[0] += [int(a.newton_steps) for a in auxs]
+        self.counts[1] += [int(a.linear_iterations) for a in auxs]
+        ok = all(bool(a.ok) for a in auxs) and bool(jnp.all(jnp.isfinite(g)))
+        return float(f), auxs, g, ok and np.isfinite(float(f))
+
+    def record(self, z, f, g):
+        h = self.hist
+        h["loss"].append(f)
+        h["p"].append(_param_row(self.obj.params(z)))
+        h["g"].append(float(jnp.linalg.norm(g)))
+        h["nw"].append(self.counts[0].tolist())
+        h["lin"].append(self.counts[1].tolist())
+        self.counts[:] = 0
+
+
+def _direction(update, optimizer, g, state, z, line_search: bool):
+    """Optimiser update ``d`` and slope ``gᵀd``; L-BFGS restarts if d is not descending."""
+    d, state = update(g, state, z)
+    slope = float(jnp.vdot(g, d))
+    if line_search and not slope < 0:
+        state = optimizer.init(z)
+        d, state = update(g, state, z)
+        slope = float(jnp.vdot(g, d))
+    return d, state, slope
+
+
+def _step(tr: _Tracker, z, f, d, slope, warms, line_search: bool):
+    """Backtracking Armijo line search (L-BFGS) or step halving on failed solves (others).
+
+    Returns ``(accepted, t)``: accepted is ``(z, f, auxs, g)`` or None (no acceptable
+    step), t the last step length tried.
+    """
+    t = 1.0
+    for _ in range(40):
+        if line_search and -slope * t <= _ROUNDOFF * abs(f):
+            return None, t  # the predicted decrease is below the loss's round-off: done
+        zt = z + t * d
+        ft, auxs, gt, ok = tr.evaluate(zt, warms)
+        if ok and (not line_search or ft <= f + _ARMIJO * t * slope):
+            return (zt, ft, auxs, gt), t
+        if ok and line_search:  # minimiser of the quadratic through f, slope, ft
+            tq = -slope * t * t / (2.0 * (ft - f - slope * t))
+            t = float(np.clip(tq, 0.1 * t, 0.5 * t))
+        else:
+            t *= 0.5
+    return None, t
+
+
+def _optimize(tr: _Tracker, optimizer, line_search, z, tol, max_iter, bar):
+    """The optimiser loop from z; returns ``(z, iterations, stop reason, warm starts)``."""
+    update_jit = _update_fn(optimizer)
+
+    def update(g, state, z):
+        try:
+            return update_jit(g, state, z)
+        except (TypeError, KeyError) as e:  # e.g. optax.lbfgs() with its zoom line search
+            raise ValueError(
+                "the optax optimizer needs extra arguments (value / value_fn of a line "
+                f"search?); use optimizer='lbfgs' for L-BFGS ({e})"
+            ) from e
+
+    gtol, ftol, xtol = tol
+    f, auxs, g, ok = tr.evaluate(z, tr.obj.initial_warms())
+    if not ok:
+        bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
+        raise GradientError(f"forward solve failed at the initial guess in case(s) {bad}")
+    warms = tuple(a.warm for a in auxs)
+    tr.record(z, f, g)
+    state = optimizer.init(z)
+    k = 0
+    while True:
+        if bar is not None:
+            bar.set_postfix(loss=f"{f:.3e}", grad=f"{tr.hist['g'][-1]:.1e}", refresh=False)
+        if tr.hist["g"][-1] <= gtol:
+            return z, k, "gtol", warms
+        if f <= ftol:
+            return z, k, "ftol", warms
+        if k >= max_iter:
+            return z, k, "max_iter", warms
+        d, state, slope = _direction(update, optimizer, g, state, z, line_search)
+        accepted, t = _step(tr, z, f, d, slope, warms, line_search)
+        if accepted is None:
+            small = line_search and -slope * t <= _ROUNDOFF * abs(f)
+            return z, k, "roundoff" if small else "stalled", warms
+        z, f, auxs, g = accepted
+        warms = tuple(a.warm for a in auxs)
+        k += 1
+        tr.record(z, f, g)
+        if bar is not None:
+            bar.update(1)
+        if float(t * jnp.max(jnp.abs(d))) <= xtol:
+            return z, k, "xtol", warms
+
+
+def fit(
+    cases: Sequence,
+    init,
+    *,
+    transforms=None,
+    regions=None,
+    fields: Sequence[str] | None = None,
+    plane: str = "strain",
+    optimizer="lbfgs",
+    learning_rate: float = 0.05,
+    max_iter: int = 100,
+    gtol: float = 1e-10,
+    ftol: float = 1e-24,
+    xtol: float = 1e-12,
+    regularization: float = 0.0,
+    reg_kind: str = "tikhonov",
+    mesh=None,
+    solver: Newton = FIT_SOLVER,
+    adjoint: ImplicitAdjoint = ImplicitAdjoint(),
+    progress: bool = False,
+) -> FitResult:
+    """Fit material parameters (any ψ pytree, or E and ν) to observations in several cases.
+
+    Minimises ``Σ_c w_c·loss_c + regulariser`` over unconstrained variables (E = E₀·exp(a),
+    ν = −1 + 1.5·sigmoid(b) for a :class:`Material`; the leaves' transforms otherwise); each
+    forward solve starts from the previous iterate's solution of the same case.
+
+    Args:
+        cases: :class:`~jaxelastic.fitting.LoadCase` s, ``TrajectoryCase`` s or any objects
+            following the case protocol (:mod:`jaxelastic.fitting.cases`).
+        init: initial parameters: a :class:`Material` (scalars, or ``(n_regions,)``
+            arrays), any ψ parameter pytree (e.g. a user ``NamedTuple``), or a
+            :class:`~jaxelastic.fitting.Parametrization`.
+        transforms: for a pytree ``init``: one transform or a tree of them (``Positive()``,
+            ``Bounded(lo, hi)``, ``Free()``, ``Fixed()``); default ``Positive()``.
+        regions: None (shared values), ``(n_cells,)`` int labels ``0..R−1``
+            (piecewise-constant fields, e.g. a two-material bar), ``"cells"``, or a tree of
+            those per leaf.
+        fields: names of the leaves to fit (default: ``("E", "nu")`` for a Material, every
+            non-Fixed leaf otherwise); the others stay at ``init``.
+        plane: 2D Material only, ``"strain"`` or ``"stress"``.
+        optimizer: ``"lbfgs"``: the optax L-BFGS direction (``optax.lbfgs(linesearch=None)``)
+            with a backtracking Armijo line search on the host (every trial point is one
+            compiled value-and-gradient evaluation, reused as the next iterate, so the
+            solver is compiled once); ``"adam"`` (``optax.adam(learning_rate)``) or any
+            optax ``GradientTransformation``: updates applied as they come, halved only
+            when a forward solve fails.
+        learning_rate: Adam's step in the unconstrained variables.
+        max_iter: maximum optimiser iterations.
+        gtol: stop (converged) when ``‖∇_z loss‖ ≤ gtol``.
+        ftol: stop (converged) when ``loss ≤ ftol``.
+        xtol: stop (converged) when an update moves z by ``≤ xtol`` (max norm).
+        regularization, reg_kind: weight and kind (``"tikhonov"``/``"tv"``) of the
+            smoothness term over adjacent regions (:mod:`jaxelastic.fitting.parameters`).
+        mesh: the mesh region labels refer to (default: the first case's ``mesh``).
+        solver: :class:`~jaxelastic.solvers.Newton` settings (keep ``rtol`` tight, ≤ 1e-10,
+            for accurate gradients; its linear solver is bound to each case once).
+        adjoint: :class:`~jaxelastic.solvers.ImplicitAdjoint` settings.
+        progress: show a tqdm progress bar with the loss and gradient norm.
+
+    Raises:
+        GradientError: a forward solve at the initial guess failed.
+    """
+    t_start = time.perf_counter()
+    kw = dict(transforms=transforms, regions=regions, fields=fields, plane=plane, mesh=mesh)
+    reg = dict(regularization=regularization, reg_kind=reg_kind)
+    obj = make_objective(cases, init, solver=solver, adjoint=adjoint, **kw, **reg)
+    line_search = optimizer == "lbfgs"
+    if isinstance(optimizer, str):
+        optimizer = _named_optimizer(optimizer, float(learning_rate))
+    tr = _Tracker(obj)
+    run = functools.partial(_optimize, tr, optimizer, line_search, obj.z0, (gtol, ftol, xtol))
+    z, k, reason, warms = _with_progress(run, max_iter, progress)
+    return _result(tr, z, k, reason, warms, time.perf_counter() - t_start)
+
+
+def _with_progress(run, max_iter: int, progress: bool):
+    """``run(max_iter, bar)`` with a tqdm bar (or None), closed whatever happens."""
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=max_iter, desc="fit", unit="it")
+    try:
+        return run(max_iter, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _result(tr: _Tracker, z, k: int, reason: str, warms, wall: float) -> FitResult:
+    h = tr.hist
+    params = _reported(tr.obj.params(z))
+    is_mat = isinstance(params, Material)
+    return FitResult(
+        material=params,
+        E=params.E if is_mat else None,
+        nu=params.nu if is_mat else None,
+        loss=h["loss"][-1],
+        converged=reason in _CONVERGED,
+        stop_reason=reason,
+        iterations=k,
+        loss_history=np.array(h["loss"]),
+        param_history=np.array(h["p"], dtype=np.float64),
+        grad_norm_history=np.array(h["g"]),
+        newton_steps=np.array(h["nw"]),
+        linear_iterations=np.array(h["lin"]),
+        solutions=list(warms),
+        z=np.asarray(z),
+        wall_time=wall,
+    )

@@ -1,0 +1,42 @@
+"""Meshes: the rest-shape :class:`Mesh` pytree, generators, P1 → P2 lifting, boundaries.
+
+Modules: :mod:`~jaxelastic.mesh.core` (the pytree and its validating constructor),
+:mod:`~jaxelastic.mesh.elements` (reference elements and quadrature rules),
+:mod:`~jaxelastic.mesh.generators` (rectangle, box, Cook's membrane),
+:mod:`~jaxelastic.mesh.quadratic` (P2 / composite lifting, formulation switch) and
+:mod:`~jaxelastic.mesh.boundary` (boundary facets and nodes).
+"""
+
+from . import elements as elements
+from .boundary import boundary_facets as boundary_facets
+from .boundary import boundary_nodes as boundary_nodes
+from .core import FORMULATIONS as FORMULATIONS
+from .core import Mesh as Mesh
+from .core import MeshError as MeshError
+from .core import check_formulation as check_formulation
+from .core import from_arrays as from_arrays
+from .generators import box as box
+from .generators import cook_membrane as cook_membrane
+from .generators import rectangle as rectangle
+from .quadratic import linear_cells as linear_cells
+from .quadratic import to_quadratic as to_quadratic
+from .quadratic import vertex_nodes as vertex_nodes
+from .quadratic import with_formulation as with_formulation
+
+__all__ = [
+    "Mesh",
+    "MeshError",
+    "FORMULATIONS",
+    "check_formulation",
+    "from_arrays",
+    "rectangle",
+    "box",
+    "cook_membrane",
+    "boundary_facets",
+    "boundary_nodes",
+    "to_quadratic",
+    "with_formulation",
+    "vertex_nodes",
+    "linear_cells",
+    "elements",
+]

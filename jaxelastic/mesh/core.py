@@ -1,0 +1,334 @@
+"""The rest-shape mesh: a frozen pytree preprocessed once, and its validating constructor.
+
+A :class:`Mesh` holds the rest points, the cells, and everything about the rest shape that
+the mechanics needs (shape-function gradients at quadrature points, quadrature weights
+including the rest measure, and a node→cell-slot incidence table for scatter-free
+assembly). It is built on the host with NumPy by :func:`from_arrays`, which validates the
+input, and then passed to jitted functions *as an argument* (never closed over: closing a
+jitted function over large arrays makes XLA constant-fold them at compile time).
+
+Orientation policy: a cell with negative rest measure (clockwise triangle, left-handed
+tetrahedron) is **reoriented** (two corners swapped, with their mid-edge nodes for P2) with
+a :class:`UserWarning` naming how many were fixed; ``orient="refuse"`` raises instead.
+Zero-measure cells are always refused, and so are P2 cells whose rest Jacobian changes
+sign between quadrature points.
+
+Elements: P1 (``tri3``/``tet4``, the default), P2 (``tri6``/``tet10``, ``order=2`` in the
+generators or :func:`~jaxelastic.mesh.to_quadratic`) and the composite F-bar element
+(``tri3x4``/``tet4x8``, ``formulation="fbar"`` with order 1). ``Mesh.formulation`` (static)
+selects F-bar/B-bar in the energy kernels; see :mod:`jaxelastic.mesh.elements` and
+:func:`~jaxelastic.kinematics.f_bar`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .elements import Element, get_element
+
+__all__ = ["Mesh", "MeshError", "from_arrays", "FORMULATIONS", "check_formulation"]
+
+FORMULATIONS = ("standard", "fbar", "bbar")
+
+
+class MeshError(ValueError):
+    """Raised for invalid mesh input (the message names the problem and the offenders)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Mesh:
+    """Rest shape of a finite-element mesh (a JAX pytree).
+
+    Attributes:
+        points: ``(n_nodes, dim)`` rest positions [length].
+        cells: ``(n_cells, nodes_per_cell)`` int32 connectivity.
+        dN: ``(n_cells, n_q, nodes_per_cell, dim)`` physical shape-function gradients
+            ``∂N_a/∂X_j`` at quadrature points [1/length].
+        weights: ``(n_cells, n_q)`` quadrature weights times the rest Jacobian
+            [length^dim]; ``weights.sum(1)`` is the rest measure |T| of each cell.
+        incidence: ``(n_nodes, max_valence)`` int32; entry ``c*k + a`` says node is local
+            node ``a`` of cell ``c``; padded with ``n_cells*nodes_per_cell`` (a zero slot).
+        element: static :class:`~jaxelastic.mesh.elements.Element` name (``"tri3"``,
+            ``"tet4"``, ``"tri6"``, ``"tet10"``, ``"tri3x4"``, ``"tet4x8"``).
+        formulation: static; ``"standard"`` (ψ at every quadrature point's F) or ``"fbar"``
+            (F̄ = (J̄/J)^{1/d} F with J̄ the cell average of J, see
+            :func:`~jaxelastic.kinematics.deformation_gradients`), or ``"bbar"`` (its
+            small-strain analogue for small-strain materials, Hughes 1980).
+    """
+
+    points: jax.Array
+    cells: jax.Array
+    dN: jax.Array
+    weights: jax.Array
+    incidence: jax.Array
+    element: str = dataclasses.field(metadata=dict(static=True), default="tri3")
+    formulation: str = dataclasses.field(metadata=dict(static=True), default="standard")
+
+    @property
+    def dim(self) -> int:
+        return self.points.shape[1]
+
+    @property
+    def n_nodes(self) -> int:
+        return self.points.shape[0]
+
+    @property
+    def n_cells(self) -> int:
+        return self.cells.shape[0]
+
+    @property
+    def n_dofs(self) -> int:
+        return self.points.size
+
+    @property
+    def volumes(self) -> jax.Array:
+        """Rest measure |T| of each cell, ``(n_cells,)`` (area in 2D, volume in 3D)."""
+        return self.weights.sum(axis=1)
+
+    @property
+    def Dm_inv(self) -> jax.Array:
+        """``(n_cells, dim, dim)`` inverse rest shape matrices Dm⁻¹ (P1 elements only)."""
+        if self.element not in ("tri3", "tet4"):
+            raise ValueError("Dm_inv is defined for linear (P1) elements only")
+        return self.dN[:, 0, 1:, :]
+
+    @property
+    def element_type(self) -> Element:
+        return get_element(self.element)
+
+
+jax.tree_util.register_dataclass(
+    Mesh,
+    data_fields=["points", "cells", "dN", "weights", "incidence"],
+    meta_fields=["element", "formulation"],
+)
+
+
+_INFER = {(2, 3): "tri3", (3, 4): "tet4", (2, 6): "tri6", (3, 10): "tet10"}
+# local node permutation swapping corners 1 and 2 (and the mid-edge nodes with them)
+_FLIP = {
+    3: [0, 2, 1],
+    4: [0, 2, 1, 3],
+    6: [0, 2, 1, 5, 4, 3],
+    10: [0, 2, 1, 3, 6, 5, 4, 7, 9, 8],
+}
+
+
+def check_formulation(formulation: str) -> None:
+    """Raise :class:`ValueError` unless ``formulation`` is one of :data:`FORMULATIONS`."""
+    if formulation not in FORMULATIONS:
+        raise ValueError(f"formulation must be one of {FORMULATIONS}, got {formulation!r}")
+
+
+def from_arrays(
+    points,
+    cells,
+    element: str | None = None,
+    *,
+    orient: str = "fix",
+    dtype=None,
+    formulation: str = "standard",
+) -> Mesh:
+    """Validate rest points and cells and build a :class:`Mesh`.
+
+    Args:
+        points: ``(n_nodes, dim)`` rest positions, dim 2 or 3.
+        cells: ``(n_cells, nodes_per_cell)`` integer connectivity.
+        element: ``"tri3"``/``"tet4"``/``"tri6"``/``"tet10"``/``"tri3x4"``/``"tet4x8"`` (or
+            meshio's ``"triangle"``/``"tetra"``/``"triangle6"``/``"tetra10"``); inferred
+            from the shapes when omitted (6-node cells: ``tri6``, 10-node: ``tet10``).
+        orient: ``"fix"`` (reorient negatively oriented cells, with a warning) or
+            ``"refuse"`` (raise :class:`MeshError`).
+        dtype: float dtype of the stored arrays (default: the points' dtype if it is a
+            float type JAX accepts, else JAX's default float).
+        formulation: ``"standard"``, ``"fbar"`` or ``"bbar"`` (not for P1 cells, where it
+            changes nothing: use ``to_quadratic(mesh, composite=True)``).
+
+    Raises:
+        MeshError: wrong shapes or dimension, NaN/inf coordinates, out-of-range or
+            duplicate indices within a cell, nodes used by no cell, zero-measure cells,
+            or inverted cells with ``orient="refuse"``; P2/composite cells whose rest
+            Jacobian changes sign between quadrature points (misplaced mid-edge nodes).
+    """
+    if orient not in ("fix", "refuse"):
+        raise ValueError(f"orient must be 'fix' or 'refuse', got {orient!r}")
+    check_formulation(formulation)
+    pts = _parse_points(points)
+    cls = _parse_cells(cells)
+    el = _resolve_element(element, pts.shape[1], cls.shape[1], formulation)
+    _check_topology(pts, cls)
+    cls = cls.astype(np.int32)
+    cls, Jac, detJ = _check_geometry(pts, cls, el, orient)
+    gref = el.shape_gradients()  # (q, k, d)
+    dN = np.einsum("qkb,cqba->cqka", gref, np.linalg.inv(Jac))  # (c, q, k, d)
+    w = detJ * np.asarray(el.quad_weights)[None, :]  # (c, q)
+    if dtype is None:
+        dtype = jnp.zeros(()).dtype  # float64 if x64 is enabled, else float32
+    return Mesh(
+        points=jnp.asarray(pts, dtype=dtype),
+        cells=jnp.asarray(cls),
+        dN=jnp.asarray(dN, dtype=dtype),
+        weights=jnp.asarray(w, dtype=dtype),
+        incidence=jnp.asarray(_incidence(cls, pts.shape[0])),
+        element=el.name,
+        formulation=formulation,
+    )
+
+
+def _parse_points(points) -> np.ndarray:
+    """``(n_nodes, dim)`` float64 rest points; raises :class:`MeshError` on bad shapes."""
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] not in (2, 3):
+        raise MeshError(f"points must have shape (n_nodes, 2) or (n_nodes, 3), got {pts.shape}")
+    if not np.issubdtype(pts.dtype, np.number):
+        raise MeshError(f"points must be numeric, got dtype {pts.dtype}")
+    return pts.astype(np.float64)
+
+
+def _parse_cells(cells) -> np.ndarray:
+    """``(n_cells, nodes_per_cell)`` integer cells (integral floats accepted)."""
+    cls = np.asarray(cells)
+    if cls.ndim != 2:
+        raise MeshError(f"cells must have shape (n_cells, nodes_per_cell), got {cls.shape}")
+    if cls.shape[0] == 0:
+        raise MeshError("mesh has no cells")
+    if not np.issubdtype(cls.dtype, np.integer):
+        if np.issubdtype(cls.dtype, np.floating) and np.all(cls == np.round(cls)):
+            cls = cls.astype(np.int64)
+        else:
+            raise MeshError(f"cells must hold integer node indices, got dtype {cls.dtype}")
+    return cls
+
+
+def _resolve_element(element: str | None, dim: int, n_per_cell: int, formulation) -> Element:
+    """The :class:`Element` named (or inferred from ``dim`` and nodes per cell), checked
+    against the points' dimension, the cells' width and the formulation."""
+    if element is None:
+        element = _INFER.get((dim, n_per_cell))
+        if element is None:
+            raise MeshError(
+                f"cannot infer the element from {dim}D points and {n_per_cell}-node cells; "
+                "supported: 3- or 6-node triangles in 2D, 4- or 10-node tetrahedra in 3D"
+            )
+    try:
+        el = get_element(element)
+    except ValueError as e:
+        raise MeshError(str(e)) from None
+    if el.dim != dim:
+        raise MeshError(f"element {el.name!r} is {el.dim}D but points are {dim}D")
+    if n_per_cell != el.n_nodes:
+        raise MeshError(
+            f"element {el.name!r} has {el.n_nodes} nodes per cell, cells have {n_per_cell}"
+        )
+    if formulation != "standard" and el.n_nodes == el.dim + 1:
+        raise MeshError(
+            "formulation 'fbar' on P1 cells changes nothing (one quadrature point per cell); "
+            "use to_quadratic(mesh, composite=True) for the composite F-bar element"
+        )
+    return el
+
+
+def _check_topology(pts: np.ndarray, cls: np.ndarray) -> None:
+    """Finite coordinates; every index in range, distinct within its cell, every node used."""
+    bad = ~np.isfinite(pts).all(axis=1)
+    if bad.any():
+        idx = np.flatnonzero(bad)
+        raise MeshError(f"{idx.size} point(s) have NaN/inf coordinates, e.g. nodes {idx[:5]}")
+    n = pts.shape[0]
+    oor = (cls < 0) | (cls >= n)
+    if oor.any():
+        c = np.flatnonzero(oor.any(axis=1))
+        raise MeshError(
+            f"{c.size} cell(s) reference node indices outside [0, {n}), e.g. cell {c[0]}: "
+            f"{cls[c[0]].tolist()}"
+        )
+    srt = np.sort(cls, axis=1)
+    dup = (srt[:, 1:] == srt[:, :-1]).any(axis=1)
+    if dup.any():
+        c = np.flatnonzero(dup)
+        raise MeshError(
+            f"{c.size} cell(s) repeat a node index, e.g. cell {c[0]}: {cls[c[0]].tolist()}"
+        )
+    used = np.zeros(n, dtype=bool)
+    used[cls.ravel()] = True
+    if not used.all():
+        u = np.flatnonzero(~used)
+        raise MeshError(
+            f"{u.size} node(s) belong to no cell (e.g. {u[:5].tolist()}); they would have no "
+            "stiffness. Remove them first (jaxelastic.io.read_mesh prunes them for you)."
+        )
+
+
+def _rest_jacobians(points: np.ndarray, cells: np.ndarray, element: Element) -> np.ndarray:
+    """``(n_cells, n_q, dim, dim)`` rest Jacobians ``∂X/∂ξ`` (equal to Dm for P1)."""
+    gref = element.shape_gradients()  # (q, k, d)
+    xe = points[cells]  # (c, k, d)
+    return np.einsum("cka,qkb->cqab", xe, gref)
+
+
+def _check_geometry(pts: np.ndarray, cls: np.ndarray, el: Element, orient: str):
+    """Refuse degenerate and internally folded cells, fix or refuse inverted ones.
+
+    Returns:
+        ``(cells, Jac (c, q, d, d), detJ (c, q))`` with every ``detJ > 0``.
+    """
+    dim = pts.shape[1]
+    Jac = _rest_jacobians(pts, cls, el)  # (c, q, d, d)
+    detJ = np.linalg.det(Jac)  # (c, q)
+    # scale-aware degeneracy test: measure relative to (longest edge)^dim
+    xe = pts[cls]
+    edges = xe[:, :, None, :] - xe[:, None, :, :]
+    h = np.sqrt((edges**2).sum(-1).max(axis=(1, 2)))
+    rel = detJ / np.maximum(h, np.finfo(float).tiny)[:, None] ** dim
+    degenerate = (np.abs(rel) < 1e-12).any(axis=1)
+    if degenerate.any():
+        c = np.flatnonzero(degenerate)
+        raise MeshError(
+            f"{c.size} cell(s) have zero rest measure (collinear/coplanar nodes), e.g. cell "
+            f"{c[0]}: nodes {cls[c[0]].tolist()}"
+        )
+    mixed = (detJ < 0).any(axis=1) & (detJ > 0).any(axis=1)
+    if mixed.any():
+        c = np.flatnonzero(mixed)
+        raise MeshError(
+            f"{c.size} {el.name} cell(s) have a rest Jacobian that changes sign inside the "
+            f"cell (misplaced mid-edge nodes), e.g. cell {c[0]}: nodes {cls[c[0]].tolist()}"
+        )
+    inverted = (detJ < 0).all(axis=1)
+    if not inverted.any():
+        return cls, Jac, detJ
+    c = np.flatnonzero(inverted)
+    if orient == "refuse":
+        raise MeshError(
+            f"{c.size} cell(s) are inverted at rest (negative orientation), e.g. cell "
+            f"{c[0]}: nodes {cls[c[0]].tolist()}; pass orient='fix' to reorient them"
+        )
+    warnings.warn(
+        f"reoriented {c.size} of {cls.shape[0]} cell(s) with negative rest orientation",
+        UserWarning,
+        stacklevel=3,
+    )
+    cls = cls.copy()
+    cls[c] = cls[c][:, _FLIP[el.n_nodes]]
+    Jac = _rest_jacobians(pts, cls, el)
+    return cls, Jac, np.linalg.det(Jac)
+
+
+def _incidence(cells: np.ndarray, n_nodes: int) -> np.ndarray:
+    """``(n_nodes, max_valence)`` int32 node → flat cell-slot table, padded with the
+    number of slots (see :attr:`Mesh.incidence`)."""
+    flat = cells.ravel()
+    pad = flat.size
+    order = np.argsort(flat, kind="stable")
+    counts = np.bincount(flat, minlength=n_nodes)
+    vmax = int(counts.max()) if counts.size else 0
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank = np.arange(flat.size) - np.repeat(starts, counts)
+    table = np.full((n_nodes, max(vmax, 1)), pad, dtype=np.int32)
+    table[flat[order], rank] = order
+    return table

@@ -1,0 +1,164 @@
+"""Mesh generators: structured rectangles and boxes, and Cook's membrane.
+
+Each returns a validated :class:`~jaxelastic.mesh.Mesh`; ``order=2`` lifts it to P2 and
+``formulation="fbar"``/``"bbar"`` selects F-bar/B-bar (with ``order=1``: the composite
+element), see :func:`~jaxelastic.mesh.to_quadratic`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .core import Mesh, check_formulation, from_arrays
+from .quadratic import to_quadratic
+
+__all__ = ["rectangle", "box", "cook_membrane"]
+
+
+def _check_counts(**counts):
+    for k, v in counts.items():
+        if int(v) != v or v < 1:
+            raise ValueError(f"{k} must be a positive integer, got {v!r}")
+
+
+def rectangle(
+    nx: int,
+    ny: int,
+    size=(1.0, 1.0),
+    origin=(0.0, 0.0),
+    *,
+    order: int = 1,
+    formulation: str = "standard",
+    **kw,
+) -> Mesh:
+    """Structured triangle mesh of a rectangle: ``nx × ny`` cells, 2 triangles each.
+
+    Args:
+        nx, ny: cells along x and y.
+        size: ``(Lx, Ly)`` [length].
+        origin: lower-left corner.
+        order, formulation: see :func:`_finish` (``order=2`` → ``tri6``;
+            ``formulation="fbar"`` with order 1 → composite ``tri3x4``).
+
+    Returns:
+        For the default order 1, a ``tri3`` mesh with ``(nx+1)(ny+1)`` nodes and
+        ``2·nx·ny`` triangles. Node ``i + (nx+1)·j`` sits at ``origin + (i·Lx/nx, j·Ly/ny)``.
+    """
+    _check_counts(nx=nx, ny=ny)
+    x = np.linspace(0.0, size[0], nx + 1) + origin[0]
+    y = np.linspace(0.0, size[1], ny + 1) + origin[1]
+    X, Y = np.meshgrid(x, y, indexing="xy")
+    pts = np.stack([X.ravel(), Y.ravel()], axis=1)
+    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
+    n0 = (i + (nx + 1) * j).ravel()
+    n1, n2, n3 = n0 + 1, n0 + nx + 2, n0 + nx + 1
+    tris = np.concatenate([np.stack([n0, n1, n2], 1), np.stack([n0, n2, n3], 1)])
+    return _finish(pts, tris, "tri3", order, formulation, kw)
+
+
+# Kuhn (Freudenthal) subdivision of the unit cube along the main diagonal 0→7: six tets,
+# positively oriented. Corner c = bx + 2·by + 4·bz.
+_KUHN = np.array(
+    [[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]]
+)
+
+
+def box(
+    nx: int,
+    ny: int,
+    nz: int,
+    size=(1.0, 1.0, 1.0),
+    origin=(0.0, 0.0, 0.0),
+    *,
+    order: int = 1,
+    formulation: str = "standard",
+    **kw,
+) -> Mesh:
+    """Structured tetrahedral mesh of a box: ``nx·ny·nz`` cubes, 6 conforming tets each.
+
+    Each cube is split into six tets along a diagonal (Kuhn/Freudenthal); the split is
+    mirrored in alternate cubes along each axis so the mesh has no preferred direction.
+
+    Args:
+        nx, ny, nz: cells along each axis.
+        size: ``(Lx, Ly, Lz)`` [length].
+        origin: the minimum corner.
+        order, formulation: see :func:`_finish` (``order=2`` → ``tet10``;
+            ``formulation="fbar"`` with order 1 → composite ``tet4x8``).
+
+    Returns:
+        For the default order 1, a ``tet4`` mesh with ``(nx+1)(ny+1)(nz+1)`` nodes and
+        ``6·nx·ny·nz`` tets; node ``i + (nx+1)(j + (ny+1)k)`` sits at
+        ``origin + (i·Lx/nx, j·Ly/ny, k·Lz/nz)``.
+    """
+    _check_counts(nx=nx, ny=ny, nz=nz)
+    axes = [np.linspace(0.0, size[a], n + 1) + origin[a] for a, n in enumerate((nx, ny, nz))]
+    Z, Y, X = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+
+    def node(i, j, k):
+        return i + (nx + 1) * (j + (ny + 1) * k)
+
+    k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    i, j, k = i.ravel(), j.ravel(), k.ravel()
+    # Mirror the Kuhn split in every other cube along each axis (corner bit b -> b xor
+    # parity): the mesh stays conforming (neighbours across a face share its mirror state
+    # in the two in-face axes, so they split that face along the same diagonal) and has no
+    # preferred diagonal direction, so a symmetric load gives a symmetric response.
+    pi, pj, pk = i & 1, j & 1, k & 1
+    corners = np.stack(
+        [
+            node(
+                i + ((c & 1) ^ pi),
+                j + (((c >> 1) & 1) ^ pj),
+                k + (((c >> 2) & 1) ^ pk),
+            )
+            for c in range(8)
+        ],
+        axis=1,
+    )
+    tets = corners[:, _KUHN]  # (cubes, 6, 4)
+    flip = ((pi + pj + pk) & 1).astype(bool)  # an odd number of mirrors reverses orientation
+    tets[flip] = tets[flip][:, :, [0, 2, 1, 3]]
+    tets = tets.reshape(-1, 4)
+    return _finish(pts, tets, "tet4", order, formulation, kw)
+
+
+def cook_membrane(n: int, *, order: int = 1, formulation: str = "standard", **kw) -> Mesh:
+    """Cook's membrane: the trapezoid (0,0), (48,44), (48,60), (0,44), ``n × n`` quads split
+    into ``2n²`` triangles.
+
+    The left edge ``x = 0`` is the clamped side, the right edge ``x = 48`` the loaded one;
+    node ``i + (n+1)·j`` is at parameter ``(i/n, j/n)``, so the loaded-edge mid-point
+    (48, 52) is a node when ``n`` is even (for ``order=2`` always: the mid-edge node of
+    the middle edge). ``order``/``formulation`` as in :func:`_finish`. See Cook (1974);
+    REFERENCES "Cook's membrane".
+    """
+    _check_counts(n=n)
+    s = np.linspace(0.0, 1.0, n + 1)
+    S, T = np.meshgrid(s, s, indexing="xy")
+    S, T = S.ravel(), T.ravel()
+    x = 48.0 * S
+    y_bot = 44.0 * S
+    y_top = 44.0 + 16.0 * S
+    y = y_bot + T * (y_top - y_bot)
+    pts = np.stack([x, y], 1)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="xy")
+    n0 = (i + (n + 1) * j).ravel()
+    n1, n2, n3 = n0 + 1, n0 + n + 2, n0 + n + 1
+    tris = np.concatenate([np.stack([n0, n1, n2], 1), np.stack([n0, n2, n3], 1)])
+    return _finish(pts, tris, "tri3", order, formulation, kw)
+
+
+def _finish(pts, cells, p1: str, order: int, formulation: str, kw) -> Mesh:
+    """Build the generator's mesh: P1 for ``order=1``; ``order=2`` → P2 (``tri6``/``tet10``);
+    ``formulation="fbar"`` (or ``"bbar"``) with order 1 → the composite element
+    (``tri3x4``/``tet4x8``, P1 displacements on the P2 node set with one volume constraint
+    per cell), with order 2 → P2 + F-bar (B-bar)."""
+    if order not in (1, 2):
+        raise ValueError(f"order must be 1 or 2, got {order!r}")
+    check_formulation(formulation)
+    m = from_arrays(pts, cells, p1, **kw)
+    if order == 1 and formulation == "standard":
+        return m
+    return to_quadratic(m, composite=order == 1, formulation=formulation)

@@ -1,0 +1,49 @@
+"""Scenes: a simulation described in a TOML file, validated, built and run.
+
+A scene names a mesh, a material, boundary conditions, loads, solver settings, an
+integrator and outputs (reference: ``docs/scenes.md``, generated from the schema).
+:func:`load_scene` validates it (unknown keys, wrong types and impossible values are
+refused with a :class:`SceneError` naming the key, the value and what is valid),
+:func:`build` turns it into arrays and a :class:`~jaxelastic.potential.Potential`,
+:func:`run_scene` solves it and writes the outputs (``jaxelastic run SCENE --out DIR``),
+and :func:`run_fit` identifies E and ν as its ``[fit]`` table says (``jaxelastic fit``).
+:func:`json_schema` is the JSON Schema of a scene file (``jaxelastic schema``).
+
+Modules, in import order: :mod:`~jaxelastic.scene.errors`, :mod:`~jaxelastic.scene.where`
+(selection expressions), :mod:`~jaxelastic.scene.callables` (``"module:function"``),
+:mod:`~jaxelastic.scene.schema` (the pydantic models), :mod:`~jaxelastic.scene.docs` (the
+generated reference), :mod:`~jaxelastic.scene.load`, :mod:`~jaxelastic.scene.build`,
+:mod:`~jaxelastic.scene.outputs`, :mod:`~jaxelastic.scene.run`, :mod:`~jaxelastic.scene.fit`.
+Shipped scenes (``scene/data/*.toml``): ``default`` (a neo-Hookean beam released under
+gravity), ``twist``, ``cook``, ``swing2d``, ``fit_cantilever`` (:func:`shipped_scenes`).
+"""
+
+from .build import Built as Built
+from .build import build as build
+from .docs import reference_markdown as reference_markdown
+from .errors import SceneError as SceneError
+from .fit import run_fit as run_fit
+from .load import Scene as Scene
+from .load import apply_overrides as apply_overrides
+from .load import load_scene as load_scene
+from .load import shipped_scenes as shipped_scenes
+from .run import run_scene as run_scene
+from .schema import SceneSpec as SceneSpec
+from .schema import json_schema as json_schema
+from .where import where_mask as where_mask
+
+__all__ = [
+    "SceneError",
+    "Scene",
+    "SceneSpec",
+    "Built",
+    "load_scene",
+    "apply_overrides",
+    "shipped_scenes",
+    "build",
+    "run_scene",
+    "run_fit",
+    "where_mask",
+    "json_schema",
+    "reference_markdown",
+]

@@ -1,0 +1,493 @@
+"""Building a validated :class:`~jaxelastic.scene.load.Scene` into arrays and a potential.
+
+:func:`build` turns the scene into a mesh (generated, or read from a file and optionally
+lifted to P2 / the composite F-bar element), ψ, parameters, Dirichlet data, a
+:class:`~jaxelastic.potential.Potential` holding only the parts the scene needs (no mass in
+statics, no ``f_ext`` without loads), a bound :class:`~jaxelastic.Newton` solver and an
+integrator. Problems only visible with the mesh (a selection matching no node, an unknown
+group, a user function failing) are :class:`~jaxelastic.scene.errors.SceneError` s naming
+the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import dynamics, loads
+from ..io import MeshData, read_mesh
+from ..loads import Dirichlet
+from ..materials import BUILTIN, Lame, lame
+from ..mesh import (
+    Mesh,
+    MeshError,
+    boundary_facets,
+    box,
+    cook_membrane,
+    rectangle,
+    to_quadratic,
+    with_formulation,
+)
+from ..mesh.elements import edge_table
+from ..potential import Potential
+from ..solvers import CG, Newton, bind_solver
+from .callables import CallableSpecError, import_callable, n_positional
+from .load import Scene, load_scene
+from .schema import RotateDisplacement, Selector, SolverSpec, axis_index
+from .where import WhereError, where_mask
+
+__all__ = ["Built", "build", "newton_of", "lift_file_mesh", "select_nodes", "select_facets"]
+
+
+class Built(NamedTuple):
+    """A scene turned into arrays and functions (everything a run needs).
+
+    Attributes:
+        scene: the :class:`~jaxelastic.scene.load.Scene`.
+        mesh: the rest mesh; mesh_data: the :class:`~jaxelastic.io.MeshData` of a mesh
+            file (named sets), or None for a generator.
+        psi: the strain-energy density; params: ``Lame(mu, lam)``.
+        potential: base :class:`~jaxelastic.potential.Potential` (``mass`` only in
+            dynamics, ``f_ext`` only with loads or gravity).
+        bc: Dirichlet data with the full prescribed displacement (statics) or at t = 0.
+        bc_fn: ``s ↦ Dirichlet``: in statics ``s`` is the load factor in [0, 1], in
+            dynamics the time [s].
+        time_dependent: whether ``bc_fn`` changes with time (dynamics).
+        solver: :class:`~jaxelastic.Newton` from ``[solver]``, its linear solver bound to
+            the mesh and the Dirichlet pattern.
+        integrator: :class:`~jaxelastic.dynamics.Integrator`, or None (statics).
+        x0: ``(n_nodes, dim)`` initial positions (the rest shape); v0: initial velocities
+            ``(n_nodes, dim)`` (zero on Dirichlet dofs), or None (statics).
+        probes: ``(node, point)`` per ``[output].probes`` entry (nearest node).
+        tip: node whose displacement is plotted over time (first probe, or the node
+            farthest from the Dirichlet nodes).
+    """
+
+    scene: Scene
+    mesh: Mesh
+    mesh_data: MeshData | None
+    psi: Callable
+    params: Lame
+    potential: Potential
+    bc: Dirichlet
+    bc_fn: Callable[[float], Dirichlet]
+    time_dependent: bool
+    solver: Newton
+    integrator: dynamics.Integrator | None
+    x0: jax.Array
+    v0: jax.Array | None
+    probes: list
+    tip: int
+
+
+# ----------------------------------------------------------------------------------------
+# mesh
+# ----------------------------------------------------------------------------------------
+
+
+def _make_mesh(scene: Scene) -> tuple[Mesh, MeshData | None]:
+    m = scene.spec.mesh
+    if m.file is not None:
+        try:
+            return lift_file_mesh(read_mesh(m.file), m.order, m.formulation)
+        except (MeshError, ValueError) as e:
+            raise scene.error(f"[mesh].file: {e}") from None
+    kw = dict(order=m.order or 1, formulation=m.formulation)
+    try:
+        if m.generator == "cook":
+            return cook_membrane(m.n, **kw), None
+        fn = box if m.generator == "box" else rectangle
+        return fn(*m.n, size=tuple(m.size), origin=tuple(m.origin), **kw), None
+    except (MeshError, ValueError) as e:
+        raise scene.error(f"[mesh]: {e}") from None
+
+
+def lift_file_mesh(md: MeshData, order: int | None, form: str) -> tuple[Mesh, MeshData]:
+    """Apply ``[mesh] order/formulation`` to a mesh read from a file.
+
+    A P1 file becomes P2 (``order = 2``) or composite (``order`` 1/unset with F-bar/B-bar)
+    by :func:`~jaxelastic.mesh.to_quadratic`, which keeps the P1 node numbers: point sets
+    gain the mid-edge nodes of edges with both ends in the set, facet sets become the
+    quadratic facets with the same corners.
+
+    Args:
+        md: the mesh file's data; order: 1, 2 or None (keep the file's); form: formulation.
+    Raises:
+        MeshError: ``order = 1`` for a P2 file, or a tagged facet set with interior facets.
+    """
+    mesh = md.mesh
+    el = mesh.element_type
+    p1 = el.n_nodes == el.dim + 1
+    if order == 1 and not p1:
+        raise MeshError(f"order = 1 but the file holds {el.name} cells (P2 files stay P2)")
+    if p1 and (order == 2 or form != "standard"):
+        q = to_quadratic(mesh, composite=order != 2, formulation=form)
+        return q, _lift_sets(md, q)
+    if form != mesh.formulation:
+        mesh = with_formulation(mesh, form)
+        md = dataclasses.replace(md, mesh=mesh)
+    return mesh, md
+
+
+def _lift_sets(md: MeshData, q: Mesh) -> MeshData:
+    """The named sets of a P1 file's ``md`` on its lifted mesh ``q`` (same P1 numbers)."""
+    el = md.mesh.element_type
+    cells = np.asarray(q.cells)
+    ends = cells[:, : el.dim + 1][:, edge_table(el)].reshape(-1, 2)  # (c·e, 2)
+    mids = cells[:, el.dim + 1 :].reshape(-1)  # the mid-node of each of those edges
+
+    def lift_points(idx):
+        inset = np.zeros(q.n_nodes, dtype=bool)
+        inset[idx] = True
+        return np.unique(np.concatenate([idx, mids[inset[ends].all(axis=1)]]))
+
+    bf = boundary_facets(q)
+    key = {tuple(sorted(f[: el.dim])): f for f in bf}
+
+    def lift_facets(f1):
+        try:
+            return np.array([key[tuple(sorted(f))] for f in f1]).reshape(-1, bf.shape[1])
+        except KeyError:
+            raise MeshError("a tagged facet set holds interior facets") from None
+
+    return dataclasses.replace(
+        md,
+        mesh=q,
+        point_sets={k: lift_points(s) for k, s in md.point_sets.items()},
+        facet_sets={k: lift_facets(s) for k, s in md.facet_sets.items()},
+        node_map=np.concatenate([md.node_map, np.full(q.n_nodes - md.mesh.n_nodes, -1)]),
+    )
+
+
+# ----------------------------------------------------------------------------------------
+# material
+# ----------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _psi_and_P(psi, F, params):
+    return jnp.asarray(psi(F, params)), jax.grad(psi)(F, params)
+
+
+def _user_callable(scene: Scene, key: str, spec: str) -> Callable:
+    try:
+        return import_callable(spec, scene.base_dir)
+    except CallableSpecError as e:
+        raise scene.error(f"{key}: {e}") from None
+
+
+def _material(scene: Scene, dim: int) -> tuple[Callable, Lame]:
+    m = scene.spec.material
+    model = m.model
+    psi = BUILTIN[model] if ":" not in model else _user_callable(scene, "[material].model", model)
+    if m.E is not None:
+        try:
+            mu, lam = lame(m.E, m.nu, dim=dim, plane=m.plane or "strain")
+        except ValueError as e:
+            raise scene.error(f"[material]: {e}") from None
+    else:
+        mu, lam = m.mu, m.lam
+    dtype = jnp.zeros(()).dtype
+    params = Lame(jnp.asarray(mu, dtype), jnp.asarray(lam, dtype))
+    try:
+        F = jnp.asarray(np.eye(dim), dtype)
+        val, P = _psi_and_P(psi, F, params)  # one small compile, not op-by-op dispatch
+    except Exception as e:  # noqa: BLE001 — user code: report any failure with the key
+        raise scene.error(
+            f"[material].model {model!r} fails at F = I in {dim}D ({type(e).__name__}: {e})"
+        ) from None
+    if val.shape != () or not bool(jnp.isfinite(val)) or not bool(jnp.all(jnp.isfinite(P))):
+        raise scene.error(
+            f"[material].model {model!r} must return a finite scalar at F = I, got "
+            f"shape {val.shape}, value {val}"
+        )
+    return psi, params
+
+
+# ----------------------------------------------------------------------------------------
+# selections
+# ----------------------------------------------------------------------------------------
+
+
+def _group_nodes(scene: Scene, key: str, name: str, mesh: Mesh, md: MeshData | None):
+    if md is None:
+        raise scene.error(
+            f"{key}.group: a generated mesh has no named groups (use plane/box/where)"
+        )
+    if name in md.point_sets:
+        return md.point_sets[name]
+    if name in md.facet_sets:
+        return np.unique(md.facet_sets[name])
+    if name in md.cell_sets:
+        return np.unique(np.asarray(mesh.cells)[md.cell_sets[name]])
+    names = sorted({*md.point_sets, *md.facet_sets, *md.cell_sets})
+    raise scene.error(
+        f"{key}.group: the mesh has no group {name!r} (groups: {', '.join(names) or 'none'})"
+    )
+
+
+def select_nodes(
+    scene: Scene, key: str, sel: Selector, mesh: Mesh, md: MeshData | None
+) -> np.ndarray:
+    """Node indices ``(m,)`` of a selector (``key`` names it in messages).
+
+    Raises:
+        SceneError: the selection matches no node, or a group/where problem.
+    """
+    if sel.plane is not None:
+        p = sel.plane
+        idx = loads.nodes_on_plane(mesh, axis_index(p.axis), p.value, p.tol)
+    elif sel.box is not None:
+        idx = loads.nodes_in_box(mesh, list(sel.box.lo), list(sel.box.hi))
+    elif sel.where is not None:
+        try:
+            idx = np.flatnonzero(where_mask(sel.where, np.asarray(mesh.points)))
+        except (WhereError, ValueError, IndexError, TypeError) as e:
+            raise scene.error(f"{key}.where: cannot evaluate {sel.where!r}: {e}") from None
+    else:
+        idx = _group_nodes(scene, key, sel.group, mesh, md)
+    idx = np.asarray(idx, dtype=np.int64)
+    if idx.size == 0:
+        raise scene.error(f"{key} selects no nodes")
+    return idx
+
+
+def select_facets(
+    scene: Scene, key: str, sel: Selector, mesh: Mesh, md: MeshData | None
+) -> np.ndarray:
+    """Boundary facets ``(m, nodes per facet)`` of a selector: a facet group, or the
+    facets whose nodes all match."""
+    if sel.group is not None:
+        if md is None:
+            raise scene.error(
+                f"{key}.group: a generated mesh has no named groups (use plane/box/where)"
+            )
+        if sel.group not in md.facet_sets:
+            raise scene.error(
+                f"{key}.group: the mesh has no facet group {sel.group!r} (facet groups: "
+                f"{', '.join(sorted(md.facet_sets)) or 'none'})"
+            )
+        facets = md.facet_sets[sel.group]
+    else:
+        mask = np.zeros(mesh.n_nodes, dtype=bool)
+        mask[select_nodes(scene, key, sel, mesh, md)] = True
+        facets = loads.facets_where(mesh, lambda X: mask)
+    if len(facets) == 0:
+        raise scene.error(f"{key} selects no boundary facets (all nodes of a facet must match)")
+    return np.asarray(facets)
+
+
+# ----------------------------------------------------------------------------------------
+# Dirichlet data and loads
+# ----------------------------------------------------------------------------------------
+
+
+def _rotation(axis: int, angle_deg: float, dim: int) -> np.ndarray:
+    c, s = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
+    if dim == 2:
+        return np.array([[c, -s], [s, c]])
+    i, j = [a for a in range(3) if a != axis]
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
+
+
+def _displacement_fn(scene: Scene, key: str, spec, dim: int):
+    """``(u(Xs, t) -> (m, dim), time_dependent)`` for one Dirichlet entry."""
+    if spec is None:
+        return (lambda Xs, t: np.zeros_like(Xs)), False
+    if isinstance(spec, str):
+        fn = _user_callable(scene, key, spec)
+        if n_positional(fn) >= 2:
+            return (lambda Xs, t: fn(Xs, t)), True
+        return (lambda Xs, t: fn(Xs)), False
+    if isinstance(spec, RotateDisplacement):
+        r = spec.rotate
+        R = _rotation(axis_index(r.axis), r.angle_deg, dim)
+        c = np.asarray(r.center if r.center is not None else [0.0] * dim, dtype=float)
+        return (lambda Xs, t: r.scale * ((Xs - c) @ R.T + c - Xs)), False
+    u = np.asarray(spec, dtype=float)
+    return (lambda Xs, t: np.broadcast_to(u, Xs.shape)), False
+
+
+def _dirichlet(scene: Scene, mesh: Mesh, md) -> tuple[Callable[[float], Dirichlet], bool]:
+    """``(s ↦ Dirichlet, time_dependent)``: ``s`` is the load factor (statics) or time."""
+    X = np.asarray(mesh.points)
+    entries = []
+    time_dep = False
+    for i, d in enumerate(scene.spec.dirichlet):
+        key = f"[dirichlet][{i}]"
+        idx = select_nodes(scene, f"{key}.nodes", d.nodes, mesh, md)
+        comps = None if d.components is None else [axis_index(a) for a in d.components]
+        u, dep = _displacement_fn(scene, f"{key}.displacement", d.displacement, mesh.dim)
+        time_dep |= dep or d.ramp_time is not None
+        entries.append((key, idx, comps, u, d.ramp_time))
+    static = scene.static
+
+    def bc_fn(s: float) -> Dirichlet:
+        if not entries:
+            return loads.no_dirichlet(mesh)
+        parts = []
+        for key, idx, comps, u, ramp in entries:
+            factor = s if static else (1.0 if ramp is None else min(s / ramp, 1.0))
+            try:
+                disp = factor * np.asarray(u(X[idx], None if static else s), dtype=float)
+                parts.append(loads.fix(mesh, idx, comps, disp))
+            except Exception as e:  # noqa: BLE001 — user functions: name the key
+                raise scene.error(f"{key}.displacement: {type(e).__name__}: {e}") from None
+        return loads.combine(*parts)
+
+    return bc_fn, time_dep
+
+
+def _external_forces(scene: Scene, mesh: Mesh, md) -> np.ndarray | None:
+    """``(n_nodes, dim)`` tractions + point loads + gravity, or None without loads."""
+    spec = scene.spec
+    parts = []
+    for i, t in enumerate(spec.traction):
+        facets = select_facets(scene, f"[traction][{i}].facets", t.facets, mesh, md)
+        if t.traction is not None:
+            parts.append(loads.traction_load(mesh, facets, list(t.traction)))
+        else:
+            _, area = loads.facet_normals(mesh.points, facets)
+            parts.append(loads.traction_load(mesh, facets, np.asarray(t.total_force) / area.sum()))
+    for i, p in enumerate(spec.point_load):
+        idx = select_nodes(scene, f"[point_load][{i}].nodes", p.nodes, mesh, md)
+        force = p.force if p.force is not None else np.asarray(p.total_force) / idx.size
+        parts.append(loads.point_load(mesh, idx, np.asarray(force)))
+    if spec.gravity is not None:
+        parts.append(loads.gravity_load(mesh, spec.material.density, list(spec.gravity.g)))
+    return sum(parts[1:], parts[0]) if parts else None
+
+
+# ----------------------------------------------------------------------------------------
+# solver, initial state, probes
+# ----------------------------------------------------------------------------------------
+
+
+def newton_of(s: SolverSpec) -> Newton:
+    """The :class:`~jaxelastic.Newton` of a ``[solver]`` table (linear solver unbound)."""
+    linear: Any = s.linear
+    if linear == "cg":
+        linear = CG(preconditioner=s.preconditioner, max_iter=s.cg_max_iter)
+    return Newton(
+        rtol=s.rtol,
+        atol=s.atol,
+        max_steps=s.max_steps,
+        xtol=s.xtol,
+        hessian=s.hessian,
+        linear=linear,
+        ls_max=s.ls_max,
+        armijo=s.armijo,
+        require_positive_J=s.require_positive_J,
+    )
+
+
+def _initial_velocity(scene: Scene, X: np.ndarray, bc: Dirichlet, dtype) -> jax.Array:
+    iv = scene.spec.integrator.initial_velocity
+    key = "[integrator].initial_velocity"
+    if iv is None:
+        v0 = np.zeros_like(X)
+    elif isinstance(iv, str):
+        fn = _user_callable(scene, key, iv)
+        try:
+            v0 = np.asarray(fn(X), dtype=float)
+        except Exception as e:  # noqa: BLE001 — user code: report any failure with the key
+            raise scene.error(f"{key}: {type(e).__name__}: {e}") from None
+        if v0.shape != X.shape or not np.isfinite(v0).all():
+            raise scene.error(
+                f"{key}: must return finite values of shape {X.shape}, got {v0.shape}"
+            )
+    else:
+        v0 = np.broadcast_to(np.asarray(iv, dtype=float), X.shape).copy()
+    return jnp.asarray(np.where(np.asarray(bc.mask), 0.0, v0), dtype)
+
+
+def _tip_node(mesh: Mesh, bc: Dirichlet) -> int:
+    from scipy.spatial import cKDTree
+
+    X = np.asarray(mesh.points)
+    fixed = np.flatnonzero(np.asarray(bc.mask).any(axis=1))
+    if fixed.size == 0:
+        return int(np.argmax(np.linalg.norm(X - X.mean(axis=0), axis=1)))
+    dist, _ = cKDTree(X[fixed]).query(X)
+    return int(np.argmax(dist))
+
+
+def _probes(scene: Scene, X: np.ndarray) -> list:
+    out = []
+    for p in scene.spec.output.probes:
+        node = int(np.argmin(np.linalg.norm(X - np.asarray(p), axis=1)))
+        out.append((node, list(p)))
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# build
+# ----------------------------------------------------------------------------------------
+
+
+def build(scene) -> Built:
+    """Turn a scene (a :class:`~jaxelastic.scene.load.Scene`, a path, a shipped name or a
+    dict) into arrays.
+
+    The :class:`~jaxelastic.potential.Potential` holds only what the scene needs: no mass
+    in statics, no ``f_ext`` without loads or gravity.
+
+    Raises:
+        SceneError: problems only visible with the mesh (a selection that matches no
+            node, an unknown group, wrong vector lengths for a mesh file's dimension, a
+            user function returning the wrong shape, a material failing at F = I).
+    """
+    scene = load_scene(scene)
+    mesh, md = _make_mesh(scene)
+    if scene.dim is None:
+        problem = scene.spec.dim_problem(mesh.dim)
+        if problem is not None:
+            raise scene.error(problem)
+    psi, params = _material(scene, mesh.dim)
+    bc_fn, time_dep = _dirichlet(scene, mesh, md)
+    f_ext = _external_forces(scene, mesh, md)
+    dtype = mesh.points.dtype
+    X = np.asarray(mesh.points)
+    pot = Potential(
+        mesh=mesh,
+        params=params,
+        f_ext=None if f_ext is None else jnp.asarray(f_ext, dtype),
+        psi=psi,
+    )
+    integrator, v0 = None, None
+    bc = bc_fn(1.0 if scene.static else 0.0)
+    if not scene.static:
+        integ = scene.spec.integrator
+        mass = loads.lumped_mass(mesh, scene.spec.material.density)
+        pot = pot.replace(mass=jnp.asarray(mass, dtype))
+        integrator = dynamics.Integrator(
+            h=integ.h, method=integ.method, alpha=integ.alpha, beta=integ.beta
+        )
+        v0 = _initial_velocity(scene, X, bc, dtype)
+    probes = _probes(scene, X)
+    return Built(
+        scene=scene,
+        mesh=mesh,
+        mesh_data=md,
+        psi=psi,
+        params=params,
+        potential=pot,
+        bc=bc,
+        bc_fn=bc_fn,
+        time_dependent=time_dep,
+        solver=bind_solver(newton_of(scene.spec.solver), mesh, bc),
+        integrator=integrator,
+        x0=mesh.points,
+        v0=v0,
+        probes=probes,
+        tip=probes[0][0] if probes else _tip_node(mesh, bc),
+    )

@@ -1,0 +1,427 @@
+"""Material identification from a scene: the ``[fit]`` table, ``jaxelastic fit SCENE``.
+
+A static scene with a ``[fit]`` table describes one or more load cases (the scene itself,
+plus ``[[fit.case]]`` entries that override scene keys, e.g. a second traction), where the
+observed deformed positions come from (a file per case, or a synthetic target solved at
+given "true" parameters, optionally on a refined mesh), which nodes are observed (all, or a
+random fraction as markers), observation noise, the initial guess and the optimiser.
+:func:`run_fit` fits (E, ν) with :func:`jaxelastic.fitting.fit` and writes
+``summary.json``, ``fit.png`` (loss and parameter trajectories) and ``observed.npz``.
+Region labels of piecewise-constant fields come from where-expressions
+(:func:`region_labels`).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import fitting
+from ..materials import Lame, lame
+from ..solvers import GradientError, SolveError
+from .build import Built, build, newton_of
+from .errors import SceneError
+from .load import Scene, load_scene
+from .outputs import log, prepare_out, save_npz, save_png, write_summary
+from .run import static_solve
+from .schema import FitCase
+from .where import where_mask
+
+__all__ = ["run_fit", "region_labels", "read_observed", "highlights"]
+
+_OUTPUTS = ("summary.json", "fit.png", "observed.npz")
+
+
+# ----------------------------------------------------------------------------------------
+# observations and regions
+# ----------------------------------------------------------------------------------------
+
+
+def region_labels(mesh, regions) -> np.ndarray:
+    """``(n_cells,)`` int labels: the first ``where`` expression a cell centroid satisfies,
+    ``len(regions)`` for cells matching none."""
+    X = np.asarray(mesh.points)[np.asarray(mesh.cells)].mean(axis=1)  # (n_cells, dim)
+    labels = np.full(X.shape[0], len(regions), dtype=np.int32)
+    for i, expr in reversed(list(enumerate(regions))):
+        labels[where_mask(expr, X)] = i
+    return labels
+
+
+def _per_region(x, n: int) -> np.ndarray:
+    return np.broadcast_to(np.asarray(x, float), (n,)).copy()
+
+
+def _load_positions(scene: Scene, key: str, path: str, dim: int):
+    """Raw ``(positions, nodes or None)`` of a .npy / .npz / .csv file."""
+    if path.endswith(".npy"):
+        return np.load(path), None
+    if path.endswith(".npz"):
+        with np.load(path) as z:
+            if "positions" not in z:
+                raise scene.error(f"{key}: {path!r} has no array 'positions' (has {list(z)})")
+            return z["positions"], (z["nodes"] if "nodes" in z else None)
+    if path.endswith((".csv", ".txt")):
+        a = np.loadtxt(path, delimiter="," if path.endswith(".csv") else None, ndmin=2)
+        if a.shape[1] != dim + 1:
+            raise scene.error(f"{key}: {path!r} must have columns node, x, y[, z] ({dim + 1})")
+        return a[:, 1:], a[:, 0]
+    raise scene.error(f"{key}: {path!r} must be a .npy, .npz or .csv file")
+
+
+def read_observed(scene: Scene, key: str, path: str, n_nodes: int, dim: int):
+    """Observed positions ``(n_obs, dim)`` and their nodes ``(n_obs,)`` from a file.
+
+    ``.npy``: ``(n_nodes, dim)`` all nodes; ``.npz``: ``positions`` and optional ``nodes``;
+    ``.csv``: rows ``node, x, y[, z]``.
+
+    Raises:
+        SceneError: (naming ``key``) a missing or unreadable file, wrong shapes, node
+            indices out of range, non-finite positions.
+    """
+    if not os.path.isfile(path):
+        raise scene.error(f"{key}: no such file {path!r}")
+    try:
+        pos, nodes = _load_positions(scene, key, path, dim)
+    except (OSError, ValueError) as e:
+        raise scene.error(f"{key}: cannot read {path!r}: {e}") from None
+    pos = np.asarray(pos, float)
+    if nodes is None:
+        if pos.shape != (n_nodes, dim):
+            raise scene.error(
+                f"{key}: expected positions of all {n_nodes} nodes ({n_nodes}, {dim}), "
+                f"got {pos.shape}"
+            )
+        nodes = np.arange(n_nodes)
+    nodes = np.asarray(nodes)
+    if nodes.ndim != 1 or not np.all(nodes == np.round(nodes)):
+        raise scene.error(f"{key}: node indices must be integers")
+    nodes = nodes.astype(np.int64)
+    if pos.shape != (nodes.size, dim) or nodes.min() < 0 or nodes.max() >= n_nodes:
+        raise scene.error(
+            f"{key}: {nodes.size} node indices in [0, {n_nodes}) with positions "
+            f"({nodes.size}, {dim}) expected, got {pos.shape}"
+        )
+    if not np.isfinite(pos).all():
+        raise scene.error(f"{key}: positions must be finite")
+    return pos, nodes
+
+
+# ----------------------------------------------------------------------------------------
+# the steps of a fit
+# ----------------------------------------------------------------------------------------
+
+
+def _case_scenes(scene: Scene) -> list[Scene]:
+    base = scene.to_dict()
+    base.pop("fit")
+    cases = [{}] + [dict(c.set) for c in scene.spec.fit.case]
+    return [load_scene(base, overrides=c, base_dir=scene.base_dir) for c in cases]
+
+
+def _regions(scene: Scene, mesh, summary: dict):
+    """``(labels (n_cells,) or None, n_regions)``; refuses an empty region."""
+    regions = scene.spec.fit.regions
+    if not regions:
+        return None, 1
+    n_reg = len(regions) + 1
+    labels = region_labels(mesh, regions)
+    counts = np.bincount(labels, minlength=n_reg)
+    if not counts.all():
+        i = int(np.flatnonzero(counts == 0)[0])
+        what = f"[fit].regions[{i}]" if i < n_reg - 1 else "the rest (no region matched)"
+        raise scene.error(f"{what} contains no cell (regions are tried in order)")
+    summary["regions"] = dict(expressions=list(regions), cells=counts)
+    return labels, n_reg
+
+
+def _with_truth(bt: Built, truth: dict, labels, n_reg: int) -> Built:
+    """``bt`` with the (per-cell, with regions) Lamé parameters of the true E, ν."""
+    E_t, nu_t = truth["E"], truth["nu"]
+    if labels is not None:
+        E_t, nu_t = _per_region(E_t, n_reg)[labels], _per_region(nu_t, n_reg)[labels]
+    plane = bt.scene.spec.material.plane or "strain"
+    p = Lame(*lame(jnp.asarray(E_t), jnp.asarray(nu_t), dim=bt.mesh.dim, plane=plane))
+    return bt._replace(params=p, potential=bt.potential.replace(params=p))
+
+
+def _synthetic_targets(scene: Scene, scenes, mesh, labels, n_reg: int, progress: bool):
+    """Observed positions ``(n_nodes, dim)`` per case, solved at ``[fit].target``."""
+    t = scene.spec.fit.target
+    truth = dict(E=t.E, nu=t.nu)
+    fmt = lambda x: ", ".join(f"{a:.6g}" for a in np.atleast_1d(x))
+    r = t.refine
+    refined = f" on a {r}x refined mesh" if r > 1 else ""
+    log(
+        progress, f"synthetic target at E = {fmt(t.E)}, nu = {fmt(t.nu)}{refined}", "jaxelastic fit"
+    )
+    observed = []
+    for s in scenes:
+        if r > 1:
+            n = s.spec.mesh.n
+            s = load_scene(
+                s, overrides={"mesh.n": [k * r for k in n] if isinstance(n, tuple) else n * r}
+            )
+        bt = build(s)
+        lab = labels if (labels is None or r == 1) else region_labels(bt.mesh, s.spec.fit.regions)
+        x, _, _ = static_solve(_with_truth(bt, truth, lab, n_reg), what="target solve")
+        idx = (
+            np.arange(mesh.n_nodes) if r == 1 else fitting.nested_nodes(bt.mesh.points, mesh.points)
+        )
+        observed.append(np.asarray(x)[idx])
+    return observed, np.arange(mesh.n_nodes), ["synthetic"] * len(scenes)
+
+
+def _file_targets(scene: Scene, mesh):
+    """Observed positions (NaN where unobserved) per case from ``observed`` files, the nodes
+    observed in every case, and the file paths."""
+    cfg = scene.spec.fit
+    files = [cfg.observed] + [c.observed for c in cfg.case]
+    keys = ["[fit].observed"] + [f"[fit.case][{i}].observed" for i in range(len(cfg.case))]
+    sources = [os.path.join(scene.base_dir, f) for f in files]
+    observed, avail = [], None
+    for key, path in zip(keys, sources, strict=True):
+        pos, nodes = read_observed(scene, key, path, mesh.n_nodes, mesh.dim)
+        full = np.full((mesh.n_nodes, mesh.dim), np.nan)
+        full[nodes] = pos
+        observed.append(full)
+        avail = nodes if avail is None else np.intersect1d(avail, nodes)
+    return observed, avail, sources
+
+
+def _load_cases(scene: Scene, builts: list[Built], observed, markers: np.ndarray):
+    """The :class:`~jaxelastic.fitting.LoadCase` s (noise added) and the observed arrays."""
+    cfg = scene.spec.fit
+    mesh = builts[0].mesh
+    X = np.asarray(mesh.points)
+    cases, arrays = [], {}
+    for i, (b, xo) in enumerate(zip(builts, observed, strict=True)):
+        xo_m = jnp.asarray(xo[markers])
+        if cfg.noise > 0:
+            key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), i)
+            xo_m = fitting.add_noise(xo_m, jnp.asarray(X[markers]), cfg.noise, key)
+        arrays[f"positions_{i}"] = np.asarray(xo_m)
+        nodes = None if markers.size == mesh.n_nodes else jnp.asarray(markers)
+        weight = 1.0 if i == 0 else cfg.case[i - 1].weight
+        cases.append(fitting.LoadCase(b.potential, b.bc, xo_m, nodes=nodes, weight=weight))
+    return cases, arrays
+
+
+def _fit(scene: Scene, cases, labels, n_reg: int, progress: bool) -> fitting.FitResult:
+    cfg, spec = scene.spec.fit, scene.spec
+    init = fitting.Material(E=cfg.initial.E, nu=cfg.initial.nu)
+    if labels is not None:
+        init = fitting.Material(_per_region(init.E, n_reg), _per_region(init.nu, n_reg))
+    solver = newton_of(spec.solver)
+    return fitting.fit(
+        cases,
+        init,
+        regions=labels,
+        fields=tuple(cfg.fields),
+        plane=spec.material.plane or "strain",
+        optimizer=cfg.optimizer,
+        learning_rate=cfg.learning_rate,
+        max_iter=cfg.max_iter,
+        gtol=cfg.gtol,
+        solver=solver.replace(rtol=min(solver.rtol, 1e-10)),
+        progress=progress,
+    )
+
+
+def _result(res: fitting.FitResult, truth, labels, n_reg: int) -> tuple[dict, dict]:
+    """The summary's ``result`` and ``history``."""
+    result = dict(
+        E=np.asarray(res.E, float),
+        nu=np.asarray(res.nu, float),
+        loss=float(res.loss),
+        converged=bool(res.converged),
+        stop_reason=res.stop_reason,
+        iterations=int(res.iterations),
+    )
+    if truth is not None:
+        for k in ("E", "nu"):
+            t = _per_region(truth[k], n_reg) if labels is not None else np.asarray(truth[k])
+            result[f"{k}_rel_error"] = np.abs(result[k] - t) / np.abs(t)
+    P = np.asarray(res.param_history)
+    history = dict(
+        loss=res.loss_history,
+        E=P[:, 0],
+        nu=P[:, 1],
+        grad_norm=res.grad_norm_history,
+        newton_steps=res.newton_steps,
+        linear_iterations=res.linear_iterations,
+    )
+    return result, history
+
+
+def _figure(hist_loss, hist_p, fields, truth, title):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 3.2))
+    ax = fig.subplots(1, 3)
+    it = np.arange(len(hist_loss))
+    ax[0].semilogy(it, np.maximum(hist_loss, 1e-300), "o-", ms=3)
+    ax[0].set(xlabel="iteration", ylabel="loss", title="loss")
+    for j, (name, lab) in enumerate((("E", "E [Pa]"), ("nu", "ν"))):
+        ax[j + 1].plot(it, hist_p[:, j], "o-", ms=3, label="fit")  # one line per region
+        if truth is not None:
+            for t in np.atleast_1d(truth[name]):
+                ax[j + 1].axhline(t, color="k", ls="--", lw=0.8)
+        fitted = "fitted" if name in fields else "held fixed"
+        ax[j + 1].set(xlabel="iteration", ylabel=lab, title=f"{lab.split()[0]} ({fitted})")
+        ax[j + 1].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+# ----------------------------------------------------------------------------------------
+# run
+# ----------------------------------------------------------------------------------------
+
+
+def _prepare(scene: Scene, out_dir) -> str:
+    """The output directory; refuses to overwrite the scene or an observation file."""
+    if scene.spec.fit is None:
+        raise SceneError(f"scene {scene.label!r} has no [fit] section")
+    cfg = scene.spec.fit
+    obs = [os.path.join(scene.base_dir, c.observed) for c in (cfg, *cfg.case) if c.observed]
+    out = prepare_out(out_dir, scene)
+    for name in _OUTPUTS:
+        p = os.path.join(out, name)
+        if any(q and os.path.abspath(q) == p for q in [scene.source, *obs]):
+            raise scene.error(f"refusing to overwrite the input {p!r}; choose another --out")
+    return out
+
+
+def _observe(scene: Scene, builts, labels, n_reg, progress, summary):
+    """Observations, marker nodes and load cases; fills the summary's case entries."""
+    cfg, mesh = scene.spec.fit, builts[0].mesh
+    t0 = time.perf_counter()
+    if cfg.target is not None:
+        scenes = [b.scene for b in builts]
+        observed, avail, sources = _synthetic_targets(scene, scenes, mesh, labels, n_reg, progress)
+    else:
+        observed, avail, sources = _file_targets(scene, mesh)
+    markers = fitting.choose_markers(builts[0].bc.mask, cfg.markers, cfg.seed, avail)
+    if markers.size == 0:
+        raise scene.error("[fit]: no observed node is free (all observed nodes are clamped)")
+    cases, arrays = _load_cases(scene, builts, observed, markers)
+    summary["timings"]["target"] = time.perf_counter() - t0
+    summary["cases"] = [
+        dict(overrides=dict(c.set), weight=c.weight, observed=src)
+        for c, src in zip([FitCase(), *cfg.case], sources, strict=True)
+    ]
+    summary["observations"] = dict(
+        n_markers=int(markers.size),
+        fraction_of_nodes=markers.size / mesh.n_nodes,
+        noise=cfg.noise,
+        seed=cfg.seed,
+    )
+    t = cfg.target
+    summary["target"] = None if t is None else dict(E=t.E, nu=t.nu, refine=t.refine)
+    summary["initial"] = dict(E=cfg.initial.E, nu=cfg.initial.nu)
+    return cases, markers, arrays
+
+
+def _fit_and_write(scene, out, cases, markers, arrays, labels, n_reg, progress, summary):
+    cfg = scene.spec.fit
+    log(
+        progress,
+        f"fitting {', '.join(cfg.fields)} on {len(cases)} load case(s), {markers.size} observed "
+        "nodes (the first iterations include compilation) ...",
+        "jaxelastic fit",
+    )
+    t0 = time.perf_counter()
+    res = _fit(scene, cases, labels, n_reg, progress)
+    summary["timings"]["fit_incl_compile"] = time.perf_counter() - t0
+    summary["result"], summary["history"] = _result(res, summary["target"], labels, n_reg)
+    t0 = time.perf_counter()
+    png, npz = os.path.join(out, "fit.png"), os.path.join(out, "observed.npz")
+    P = np.asarray(res.param_history)
+    title = f"{scene.name}: fit of (E, ν)"
+    save_png(_figure(res.loss_history, P, cfg.fields, summary["target"], title), png)
+    save_npz(npz, nodes=markers, **arrays)
+    path = os.path.join(out, "summary.json")
+    summary["outputs"] = dict(directory=out, summary=path, png=[png], observed=npz)
+    summary["timings"]["outputs"] = time.perf_counter() - t0
+
+
+def run_fit(scene, out_dir, progress: bool = True) -> dict:
+    """Fit (E, ν) as the scene's ``[fit]`` table says; write the outputs into ``out_dir``.
+
+    Writes (atomically) ``summary.json`` (scene, cases, target, initial guess, fitted
+    values and their relative errors when the truth is known, stop reason, loss /
+    parameter / gradient-norm / Newton histories, timings), ``fit.png`` and
+    ``observed.npz`` (``nodes``, and ``positions_<i>`` per case: a file target for reruns).
+
+    Args:
+        scene: a scene with a ``[fit]`` table (Scene, path, shipped name or dict);
+            out_dir: output directory; progress: progress bars and messages.
+    Raises:
+        SceneError: invalid scene, no ``[fit]`` section, bad observation files.
+        SolveError / GradientError: the target solve or a fit solve failed (the summary is
+            still written with ``"status": "failed"``).
+    """
+    t_start = time.perf_counter()
+    scene = load_scene(scene)
+    out = _prepare(scene, out_dir)
+    summary: dict[str, Any] = dict(
+        scene=scene.to_dict(), scene_file=scene.source, status="running", timings={}
+    )
+    path = os.path.join(out, "summary.json")
+    try:
+        t0 = time.perf_counter()
+        builts = [build(s) for s in _case_scenes(scene)]
+        mesh = builts[0].mesh
+        summary["mesh"] = dict(
+            dim=mesh.dim, n_nodes=mesh.n_nodes, n_cells=mesh.n_cells, element=mesh.element
+        )
+        summary["timings"]["build"] = time.perf_counter() - t0
+        labels, n_reg = _regions(scene, mesh, summary)
+        cases, markers, arrays = _observe(scene, builts, labels, n_reg, progress, summary)
+        _fit_and_write(scene, out, cases, markers, arrays, labels, n_reg, progress, summary)
+    except (SolveError, GradientError) as e:
+        summary.update(status="failed", error=f"{type(e).__name__}: {e}")
+        summary["timings"]["total"] = time.perf_counter() - t_start
+        write_summary(path, summary)
+        raise
+    summary["status"] = "ok"
+    summary["timings"]["total"] = time.perf_counter() - t_start
+    return write_summary(path, summary)
+
+
+# ----------------------------------------------------------------------------------------
+# command-line summary
+# ----------------------------------------------------------------------------------------
+
+
+def _fmt(x) -> str:
+    return ", ".join(f"{a:.6g}" for a in np.atleast_1d(x))
+
+
+def highlights(s: dict) -> str:
+    """A few lines summarising a fit summary (for the command line)."""
+    r = s["result"]
+    lines = [
+        f"fit of scene {s['scene']['name']!r}: {s['status']} ({r['stop_reason']}, "
+        f"{r['iterations']} iterations, loss {r['loss']:.3e})"
+    ]
+    t = s.get("target")
+    for k, name in (("E", "E "), ("nu", "nu")):
+        err = ""
+        if t:
+            e = ", ".join(f"{a:.2e}" for a in np.atleast_1d(r[k + "_rel_error"]))
+            err = f"  (true {_fmt(t[k])}, rel. error {e})"
+        lines.append(f"  {name} = {_fmt(r[k])}{err}")
+    o = s["observations"]
+    lines.append(
+        f"  {len(s['cases'])} load case(s), {o['n_markers']} observed nodes "
+        f"({100 * o['fraction_of_nodes']:.1f} %), noise {o['noise']:g}"
+    )
+    lines.append(f"  total {s['timings']['total']:.1f} s; outputs in {s['outputs']['directory']}")
+    return "\n".join(lines)

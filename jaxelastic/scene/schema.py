@@ -1,0 +1,952 @@
+"""The scene file format as pydantic v2 models: one model per table of a scene file.
+
+:class:`SceneSpec` is the whole file; its fields are the tables (:class:`MeshSpec`,
+:class:`MaterialSpec`, :class:`DirichletSpec`, ...). Validation refuses unknown keys, wrong
+types and impossible values; :func:`validate` turns pydantic's ``ValidationError`` into a
+:class:`~jaxelastic.scene.errors.SceneError` that names the key as written in the file
+(``[material].nu``), the bad value and the valid choices or range. :func:`json_schema` is
+the JSON Schema of a scene file (``jaxelastic schema``), for editors with TOML schema
+support (taplo / Even Better TOML). Checks that need the mesh's dimension run here when a
+generator fixes it, else once a mesh file is read (:meth:`SceneSpec.dim_problem`).
+
+Validation context (``model_validate(raw, context={"base_dir": ...})``): ``base_dir`` is the
+directory that relative mesh paths and ``"module:function"`` imports resolve against.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator, Mapping
+from typing import Annotated, Any, ClassVar, Literal, Union
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Discriminator,
+    Field,
+    PlainValidator,
+    Strict,
+    Tag,
+    ValidationError,
+    ValidationInfo,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
+
+from ..materials import BUILTIN
+from ..mesh import FORMULATIONS
+from .callables import CallableSpecError, import_callable, n_positional
+from .errors import SceneError, fail, from_validation_error, type_name
+from .where import WhereError, check_where
+
+__all__ = [
+    "AXES",
+    "GENERATOR_DIM",
+    "axis_index",
+    "SceneSpec",
+    "MeshSpec",
+    "MaterialSpec",
+    "Selector",
+    "PlaneSelector",
+    "BoxSelector",
+    "Rotation",
+    "RotateDisplacement",
+    "DirichletSpec",
+    "TractionSpec",
+    "PointLoadSpec",
+    "GravitySpec",
+    "SolverSpec",
+    "StaticIntegrator",
+    "DynamicIntegrator",
+    "OutputSpec",
+    "FitTarget",
+    "FitInitial",
+    "FitCase",
+    "FitSpec",
+    "validate",
+    "json_schema",
+]
+
+GENERATOR_DIM = {"box": 3, "rectangle": 2, "cook": 2}
+"""Spatial dimension of each mesh generator."""
+AXES = {"x": 0, "y": 1, "z": 2}
+"""Axis names and their indices."""
+CALLABLE_PATTERN = r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$"
+
+
+def axis_index(a) -> int:
+    """``0/1/2`` or ``"x"/"y"/"z"`` → the axis index."""
+    return AXES[a] if isinstance(a, str) else int(a)
+
+
+def _base_dir(info: ValidationInfo) -> str:
+    ctx = info.context or {}
+    return os.path.abspath(ctx.get("base_dir") or os.getcwd())
+
+
+# ----------------------------------------------------------------------------------------
+# value types
+# ----------------------------------------------------------------------------------------
+
+Number = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+Positive = Annotated[Number, Field(gt=0)]
+NonNegative = Annotated[Number, Field(ge=0)]
+Integer = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+Str = Annotated[str, Strict()]
+Vector = Annotated[tuple[Number, ...], Field(min_length=1)]
+"""One entry per mesh dimension."""
+
+
+def _kind(v) -> str:
+    if isinstance(v, str):
+        return "str"
+    if isinstance(v, (Mapping, BaseModel)):
+        return "table"
+    if isinstance(v, (list, tuple)):
+        return "array"
+    return "scalar"
+
+
+def either(default: str, **alternatives):
+    """A union chosen by the TOML type of the value (``str``, ``table``, ``array``,
+    ``scalar``; other types go to ``default``), so that errors name one alternative."""
+
+    def pick(v) -> str:
+        k = _kind(v)
+        return f"~{k if k in alternatives else default}"
+
+    members = tuple(Annotated[t, Tag(f"~{k}")] for k, t in alternatives.items())
+    return Annotated[Union[members], Discriminator(pick)]  # noqa: UP007
+
+
+def _axis(v):
+    if (isinstance(v, str) and v in AXES) or (type(v) is int and 0 <= v <= 2):
+        return v
+    raise fail(f"{{at}} must be 0, 1, 2 or 'x', 'y', 'z', got {v!r}")
+
+
+Axis = Annotated[
+    Union[int, str],  # noqa: UP007
+    PlainValidator(_axis),
+    WithJsonSchema(
+        {"anyOf": [{"type": "integer", "minimum": 0, "maximum": 2}, {"enum": ["x", "y", "z"]}]}
+    ),
+]
+"""An axis: ``0/1/2`` or ``"x"/"y"/"z"``."""
+
+
+def _importable(v: str, info: ValidationInfo) -> str:
+    try:
+        import_callable(v, _base_dir(info))
+    except CallableSpecError as e:
+        raise fail(f"{{at}}: {e}") from None
+    return v
+
+
+CallableName = Annotated[
+    str,
+    Strict(),
+    AfterValidator(_importable),
+    WithJsonSchema({"type": "string", "pattern": CALLABLE_PATTERN}),
+]
+"""``"module:function"``, imported with the scene file's directory first on ``sys.path``."""
+
+
+def _where_ok(v: str) -> str:
+    try:
+        check_where(v)
+    except WhereError as e:
+        raise fail(f"{{at}}: {e} in {v!r}") from None
+    return v
+
+
+WhereExpr = Annotated[str, Strict(), AfterValidator(_where_ok)]
+"""A boolean expression of the rest positions (see :mod:`jaxelastic.scene.where`)."""
+
+
+def _array_of_tables(v):
+    if isinstance(v, Mapping):
+        raise fail("{at} must be an array of tables: write [{at}]")
+    if not isinstance(v, (list, tuple)):
+        raise fail(f"{{at}} must be an array of tables, got {type_name(v)}")
+    return v
+
+
+# ----------------------------------------------------------------------------------------
+# the base table
+# ----------------------------------------------------------------------------------------
+
+
+class Table(BaseModel):
+    """A table of a scene file: unknown keys are refused, the result is read-only."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    _unknown_suffix: ClassVar[str] = ""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _known_keys(cls, data):
+        if isinstance(data, BaseModel):
+            return data
+        if not isinstance(data, Mapping):
+            raise fail(f"{{at}} must be a table, got {type_name(data)} {data!r}")
+        valid = list(cls.model_fields)
+        for k in data:
+            if k not in valid:
+                raise fail(cls._unknown_key(k, valid))
+        return cls._prepare(dict(data))
+
+    @classmethod
+    def _unknown_key(cls, key: str, valid: list) -> str:
+        return f"unknown key {{at}}.{key}{cls._unknown_suffix} (valid: {', '.join(valid)})"
+
+    @classmethod
+    def _prepare(cls, data: dict) -> dict:
+        """Cross-key checks and defaults on the raw table (before the fields are validated)."""
+        return data
+
+
+# ----------------------------------------------------------------------------------------
+# [mesh]
+# ----------------------------------------------------------------------------------------
+
+
+_Count = Annotated[Integer, Field(ge=1)]
+CellCounts = either("scalar", scalar=_Count, array=tuple[_Count, ...])
+
+
+class MeshSpec(Table):
+    """The mesh: a generator (``box``, ``rectangle``, ``cook``) or a mesh file."""
+
+    generator: Literal["box", "rectangle", "cook"] | None = Field(
+        None,
+        description='"box" (3D tets), "rectangle" (2D triangles) or "cook" (Cook\'s '
+        "membrane, 2D); exactly one of generator and file",
+    )
+    file: Str | None = Field(
+        None,
+        description="any meshio-readable mesh file (Gmsh .msh, .vtu, .xdmf, ...), relative "
+        "to the scene file; its named groups can be selected with { group = ... }",
+    )
+    n: CellCounts | None = Field(
+        None,
+        description='cells per axis, one per dimension (generator "cook": one integer, default 16)',
+    )
+    size: tuple[Positive, ...] | None = Field(
+        None, description="box/rectangle extent per axis [m] (default: all 1)"
+    )
+    origin: Vector | None = Field(
+        None, description="box/rectangle corner with the smallest coordinates [m] (default 0)"
+    )
+    order: Literal[1, 2] | None = Field(
+        None,
+        description="1 (P1, default for generators) or 2 (P2: tri6/tet10); a file keeps its "
+        "own order unless given (order = 2 lifts a P1 file)",
+    )
+    formulation: Literal[FORMULATIONS] = Field(  # type: ignore[valid-type]
+        "standard",
+        description='"standard", "fbar" (finite strain) or "bbar" (small strain, for '
+        '"linear"): locking-free for nu -> 0.5; with order = 1 this is the composite '
+        "element (tri3x4/tet4x8 on the P2 node set)",
+    )
+
+    @classmethod
+    def _prepare(cls, t: dict) -> dict:
+        if ("generator" in t) == ("file" in t):
+            raise fail("{at} needs exactly one of generator = ... or file = ...")
+        if "file" in t:
+            for k in ("n", "size", "origin"):
+                if k in t:
+                    raise fail(
+                        f"{{at}}.{k} is only valid with a generator (a file has its geometry)"
+                    )
+            return t
+        gen = t["generator"]
+        if gen == "cook":
+            for k in ("size", "origin"):
+                if k in t:
+                    raise fail(f"{{at}}.{k} is not valid for generator 'cook' (fixed geometry)")
+            n = t.get("n", 16)
+            t["n"] = n[0] if isinstance(n, (list, tuple)) and len(n) == 1 else n
+        elif gen in GENERATOR_DIM:
+            if "n" not in t:
+                raise fail(f"{{at}}.n is required for generator {gen!r}")
+            dim = GENERATOR_DIM[gen]
+            t.setdefault("size", [1.0] * dim)
+            t.setdefault("origin", [0.0] * dim)
+        t.setdefault("order", 1)
+        return t
+
+    @field_validator("file")
+    @classmethod
+    def _file_exists(cls, v, info: ValidationInfo):
+        if v is None:
+            return v
+        path = os.path.normpath(os.path.join(_base_dir(info), os.path.expanduser(v)))
+        if not os.path.isfile(path):
+            raise fail(f"{{at}}: no such mesh file {path!r}")
+        return path
+
+    @model_validator(mode="after")
+    def _n_matches(self):
+        gen = self.generator
+        if gen == "cook" and not isinstance(self.n, int):
+            raise fail(f"{{at}}.n must be an integer for 'cook', got {self.n!r}")
+        if gen in ("box", "rectangle"):
+            dim = GENERATOR_DIM[gen]
+            if not isinstance(self.n, tuple) or len(self.n) != dim:
+                n = list(self.n) if isinstance(self.n, tuple) else self.n
+                raise fail(f"{{at}}.n must be an array of {dim} integers for {gen!r}, got {n!r}")
+        return self
+
+
+# ----------------------------------------------------------------------------------------
+# [material]
+# ----------------------------------------------------------------------------------------
+
+
+def _material_model(v: str, info: ValidationInfo) -> str:
+    if ":" in v:
+        return _importable(v, info)
+    if v not in BUILTIN:
+        raise fail(
+            f"{{at}}: unknown material {v!r} (built-in: {', '.join(BUILTIN)}; or "
+            "'module:function' for your own psi(F, params))"
+        )
+    return v
+
+
+MaterialModel = Annotated[
+    str,
+    Strict(),
+    AfterValidator(_material_model),
+    WithJsonSchema(
+        {"anyOf": [{"enum": list(BUILTIN)}, {"type": "string", "pattern": CALLABLE_PATTERN}]}
+    ),
+]
+
+
+class MaterialSpec(Table):
+    """The material: a strain-energy density and its elastic parameters."""
+
+    model: MaterialModel = Field(
+        description="a built-in psi (" + ", ".join(BUILTIN) + ') or "module:function" for '
+        "your own psi(F, params), which receives params = Lame(mu, lam)"
+    )
+    E: Positive | None = Field(None, description="Young's modulus [Pa] (with nu)")
+    nu: Annotated[Number, Field(gt=-1, lt=0.5)] | None = Field(
+        None, description="Poisson's ratio (with E)"
+    )
+    mu: Positive | None = Field(None, description="shear modulus [Pa] (with lam, instead of E, nu)")
+    lam: Number | None = Field(None, description="first Lamé parameter [Pa] (with mu); lam > -mu")
+    plane: Literal["strain", "stress"] | None = Field(
+        None, description='2D only, with E and nu: "strain" (default) or "stress"'
+    )
+    density: Positive | None = Field(
+        None, description="[kg/m^3]; required for dynamics and gravity"
+    )
+
+    @model_validator(mode="after")
+    def _one_pair(self):
+        has_E = self.E is not None or self.nu is not None
+        has_mu = self.mu is not None or self.lam is not None
+        if has_E == has_mu:
+            raise fail("{at} needs either E and nu, or mu and lam (exactly one pair)")
+        pair = ("E", "nu") if has_E else ("mu", "lam")
+        for k in pair:
+            if getattr(self, k) is None:
+                raise fail(f"{{at}}.{k} is required (give {pair[0]} and {pair[1]} together)")
+        if has_mu and not self.lam > -self.mu:
+            raise fail(f"{{at}}.lam must be > -mu (a positive bulk modulus), got {self.lam!r}")
+        if has_mu and self.plane is not None:
+            raise fail("{at}.plane needs E and nu (mu and lam are used as given)")
+        return self
+
+
+# ----------------------------------------------------------------------------------------
+# node and facet selections, [[dirichlet]], [[traction]], [[point_load]], [gravity]
+# ----------------------------------------------------------------------------------------
+
+
+class PlaneSelector(Table):
+    """The nodes on the plane ``X[axis] = value`` (within ``tol``)."""
+
+    axis: Axis = Field(description='0, 1, 2 or "x", "y", "z"')
+    value: Number = Field(description="the plane's coordinate [m]")
+    tol: Positive | None = Field(
+        None,
+        description="distance tolerance [m] (default: 1e-8 x the largest mesh extent, "
+        "at least 1e-8)",
+    )
+
+
+class BoxSelector(Table):
+    """The nodes inside the axis-aligned box ``lo <= X <= hi``."""
+
+    lo: Vector = Field(description="lower corner [m]")
+    hi: Vector = Field(description="upper corner [m]")
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if len(self.lo) != len(self.hi) or any(a > c for a, c in zip(self.lo, self.hi)):  # noqa: B905
+            raise fail(
+                f"{{at}}: lo must not exceed hi componentwise, got lo={list(self.lo)}, "
+                f"hi={list(self.hi)}"
+            )
+        return self
+
+
+class Selector(Table):
+    """A set of nodes (facets: those whose nodes all match): exactly one of ``plane``,
+    ``box``, ``group``, ``where``."""
+
+    plane: PlaneSelector | None = Field(None, description="{ axis = ..., value = ... }")
+    box: BoxSelector | None = Field(None, description="{ lo = [..], hi = [..] }")
+    group: Str | None = Field(None, description="a named group (physical tag) of a mesh file")
+    where: WhereExpr | None = Field(
+        None,
+        description='a boolean expression of the rest positions, e.g. "x < 1e-9" or '
+        '"(X[:, 0] > 1) & (abs(y) < 0.1)" (see the where-expression rules)',
+    )
+
+    @classmethod
+    def _prepare(cls, t: dict) -> dict:
+        if len(t) != 1:
+            raise fail(f"{{at}} needs exactly one of plane, box, group, where; got {sorted(t)}")
+        return t
+
+
+class Rotation(Table):
+    """A rigid rotation of the selected nodes, ``u = scale (R (X - c) + c - X)``."""
+
+    axis: Axis = Field("z", description='rotation axis: 0, 1, 2 or "x", "y", "z" ("z" in 2D)')
+    angle_deg: Number = Field(description="rotation angle [degrees]")
+    center: Vector | None = Field(None, description="a point on the axis [m] (default 0)")
+    scale: Number = Field(1.0, description="factor applied to the displacement")
+
+
+class RotateDisplacement(Table):
+    """``{ rotate = { ... } }``: a prescribed rotation."""
+
+    rotate: Rotation = Field(description="the rotation")
+
+
+Displacement = either("array", array=Vector, table=RotateDisplacement, str=CallableName)
+
+
+class DirichletSpec(Table):
+    """A prescribed displacement (any number; later entries override earlier ones)."""
+
+    nodes: Selector = Field(description="the constrained nodes")
+    components: Annotated[tuple[Axis, ...], Field(min_length=1)] | None = Field(
+        None, description="the constrained components (default: all)"
+    )
+    displacement: Displacement | None = Field(
+        None,
+        description='[m]: a vector (default 0), { rotate = { ... } }, or "module:function" '
+        "u(X) -> (m, dim) (in dynamics also u(X, t))",
+    )
+    ramp_time: Positive | None = Field(
+        None, description="dynamics: the displacement grows linearly until this time [s]"
+    )
+
+    @model_validator(mode="after")
+    def _distinct(self):
+        c = self.components
+        if c is not None and len({axis_index(a) for a in c}) != len(c):
+            raise fail(f"{{at}}.components repeats a component: {list(c)!r}")
+        return self
+
+
+class _Load(Table):
+    _value_key: ClassVar[str] = ""
+
+    @model_validator(mode="after")
+    def _one_value(self):
+        k = self._value_key
+        if (getattr(self, k) is None) == (self.total_force is None):
+            raise fail(f"{{at}} needs exactly one of {k} = [..] or total_force = [..]")
+        return self
+
+
+class TractionSpec(_Load):
+    """A dead load per reference area on boundary facets."""
+
+    _value_key: ClassVar[str] = "traction"
+    facets: Selector = Field(description="the loaded boundary facets (same selectors as nodes)")
+    traction: Vector | None = Field(None, description="[Pa] per reference area")
+    total_force: Vector | None = Field(None, description="[N] spread over the facets' area")
+
+
+class PointLoadSpec(_Load):
+    """Forces on nodes."""
+
+    _value_key: ClassVar[str] = "force"
+    nodes: Selector = Field(description="the loaded nodes")
+    force: Vector | None = Field(None, description="[N] on each node")
+    total_force: Vector | None = Field(None, description="[N] shared equally by the nodes")
+
+
+class GravitySpec(Table):
+    """A body force ``density * g`` (needs ``[material].density``)."""
+
+    g: Vector = Field(description="gravitational acceleration [m/s^2]")
+
+
+# ----------------------------------------------------------------------------------------
+# [solver], [integrator], [output]
+# ----------------------------------------------------------------------------------------
+
+
+class SolverSpec(Table):
+    """Newton's method and its linear solver (``jaxelastic.Newton``)."""
+
+    max_steps: Annotated[Integer, Field(ge=1)] = Field(50, description="Newton iteration limit")
+    rtol: NonNegative = Field(1e-8, description="relative tolerance on the force residual")
+    atol: NonNegative = Field(0.0, description="absolute tolerance on the force residual [N]")
+    xtol: NonNegative = Field(
+        1e-12,
+        description="also converged when a Newton step moves no node by more than xtol x "
+        "the rest bounding-box diagonal",
+    )
+    hessian: Literal["hvp", "element", "projected"] = Field(
+        "element",
+        description='"element" (exact element Hessians, assembled), "hvp" (matrix-free '
+        'Hessian-vector products) or "projected" (PSD-projected element Hessians)',
+    )
+    linear: Literal["auto", "cg", "direct", "amg"] = Field(
+        "auto",
+        description='"auto" (sparse Cholesky up to 10k dofs in 3D / 100k in 2D, else '
+        'AMG-preconditioned CG), "direct", "amg", or "cg" (matrix-free PCG inside jit)',
+    )
+    preconditioner: Literal["block_jacobi", "jacobi", "none"] = Field(
+        "block_jacobi", description='preconditioner of linear = "cg"'
+    )
+    cg_max_iter: Annotated[Integer, Field(ge=1)] = Field(
+        2000, description='CG iteration limit per Newton step (linear = "cg")'
+    )
+    ls_max: Annotated[Integer, Field(ge=1)] = Field(
+        40, description="maximum step halvings in the line search"
+    )
+    armijo: Annotated[Number, Field(ge=0, lt=1)] = Field(
+        1e-4, description="sufficient-decrease constant of the line search"
+    )
+    require_positive_J: Bool = Field(
+        False, description="also reject trial steps where an element has J <= 0"
+    )
+
+
+class StaticIntegrator(Table):
+    """A static solve (the default)."""
+
+    _unknown_suffix: ClassVar[str] = " for type = 'static'"
+    type: Literal["static"] = Field("static", description='"static" or "dynamic"')
+    load_steps: Annotated[Integer, Field(ge=1)] = Field(
+        1, description="apply the loads in this many equal increments (cut back on failure)"
+    )
+
+
+InitialVelocity = either("array", array=Vector, str=CallableName)
+
+
+class DynamicIntegrator(Table):
+    """Time stepping: backward Euler or BDF2 as incremental-potential minimisation."""
+
+    type: Literal["dynamic"] = Field(description='"dynamic"')
+    h: Positive = Field(description="time step [s]")
+    duration: Positive = Field(description="simulated time [s] (the maximum when settle = true)")
+    method: Literal["backward_euler", "bdf2"] = Field(
+        "backward_euler", description='"backward_euler" or "bdf2" (second order)'
+    )
+    alpha: NonNegative = Field(0.0, description="mass-proportional Rayleigh damping [1/s]")
+    beta: NonNegative = Field(0.0, description="stiffness-proportional Rayleigh damping [s]")
+    settle: Bool = Field(
+        False, description="stop once kinetic < settle_tol x elastic energy for settle_steps steps"
+    )
+    settle_tol: Positive = Field(1e-8, description="kinetic / elastic energy ratio of settle")
+    settle_steps: Annotated[Integer, Field(ge=1)] = Field(
+        5, description="consecutive steps below settle_tol"
+    )
+    initial_velocity: InitialVelocity | None = Field(
+        None,
+        description='[m/s]: a vector for all nodes, or "module:function" v(X) -> (m, dim) '
+        "(default 0; zero on Dirichlet dofs)",
+    )
+    compare_static: Bool = Field(
+        False,
+        description="also solve the static problem of the final load and report the difference",
+    )
+
+    @model_validator(mode="after")
+    def _duration(self):
+        if self.duration < self.h * (1 - 1e-12):
+            raise fail(f"{{at}}.duration must be >= h = {self.h!r}, got {self.duration!r}")
+        return self
+
+
+def _integrator_kind(v) -> str:
+    t = v.get("type", "static") if isinstance(v, Mapping) else getattr(v, "type", "static")
+    return f"~{t}" if t in ("static", "dynamic") else str(t)
+
+
+Integrator = Annotated[
+    Union[  # noqa: UP007
+        Annotated[StaticIntegrator, Tag("~static")], Annotated[DynamicIntegrator, Tag("~dynamic")]
+    ],
+    Discriminator(_integrator_kind),
+]
+
+
+class OutputSpec(Table):
+    """What is written into the output directory besides ``summary.json``."""
+
+    every: Annotated[Integer, Field(ge=1)] = Field(
+        1, description="write a VTU every k time steps (and the first and last)"
+    )
+    vtu: Bool = Field(True, description="ParaView time series (.vtu files + .pvd)")
+    png: Bool = Field(True, description="pictures: final shape, tip displacement, energies")
+    probes: tuple[Vector, ...] = Field(
+        (), description="points [m]: report the displacement at the node nearest each"
+    )
+
+
+# ----------------------------------------------------------------------------------------
+# [fit]
+# ----------------------------------------------------------------------------------------
+
+_E = Annotated[Number, Field(gt=0)]
+_NU = Annotated[Number, Field(gt=-1, lt=0.5)]
+EValues = either("scalar", scalar=_E, array=Annotated[tuple[_E, ...], Field(min_length=1)])
+NuValues = either("scalar", scalar=_NU, array=Annotated[tuple[_NU, ...], Field(min_length=1)])
+
+
+def _n_values(x) -> int:
+    return len(x) if isinstance(x, tuple) else 1
+
+
+class FitTarget(Table):
+    """Synthetic observations: the scene solved at these "true" parameters."""
+
+    E: EValues = Field(description="true Young's modulus [Pa]: one value, or one per region")
+    nu: NuValues = Field(description="true Poisson's ratio: one value, or one per region")
+    refine: Annotated[Integer, Field(ge=1)] = Field(
+        1,
+        description="solve the target on a mesh with refine x the cells per axis, observed at "
+        "the fitting mesh's nodes (generator meshes only)",
+    )
+
+
+class FitInitial(Table):
+    """The initial guess (default: ``[material].E`` and ``.nu``)."""
+
+    E: EValues | None = Field(None, description="[Pa]: one value, or one per region")
+    nu: NuValues | None = Field(None, description="one value, or one per region")
+
+
+class FitCase(Table):
+    """Another load case: scene overrides, a weight and (file targets) its observations."""
+
+    set: dict[str, Any] = Field(
+        {},
+        description='dotted-key scene overrides, e.g. { "traction.0.traction" = [2e4, 0, 0] } '
+        "(not mesh, integrator or fit)",
+    )
+    observed: Str | None = Field(None, description="observation file of this case (file targets)")
+    weight: Positive = Field(1.0, description="weight of this case in the loss")
+
+    @field_validator("set")
+    @classmethod
+    def _settable(cls, v):
+        for path in v:
+            if str(path).split(".")[0] in ("mesh", "fit", "integrator"):
+                raise fail(f"{{at}}: {path!r} cannot be changed per load case")
+        return v
+
+
+class FitSpec(Table):
+    """Material identification (``jaxelastic fit``): fit E and nu to observed shapes."""
+
+    target: FitTarget | None = Field(
+        None, description="synthetic observations solved at { E, nu[, refine] }"
+    )
+    observed: Str | None = Field(
+        None,
+        description="observed positions of the scene's case: .npy (n_nodes, dim), .npz with "
+        '"positions" (n_obs, dim) and optional "nodes" (n_obs,), or .csv rows "node, x, y[, z]"',
+    )
+    initial: FitInitial = Field(FitInitial(), description="initial guess { E, nu }")
+    fields: Annotated[tuple[Literal["E", "nu"], ...], Field(min_length=1)] = Field(
+        ("E", "nu"), description="the fitted parameters (the others stay at initial)"
+    )
+    regions: tuple[WhereExpr, ...] = Field(
+        (),
+        description="piecewise-constant E, nu: region i = cells whose centroid satisfies the "
+        "i-th expression (first match), the last region the rest",
+    )
+    markers: Annotated[Number, Field(gt=0, le=1)] = Field(
+        1.0,
+        description="fraction of the nodes observed (random, among nodes not fully clamped)",
+    )
+    noise: NonNegative = Field(
+        0.0, description="relative Gaussian noise (sigma = noise x RMS displacement)"
+    )
+    seed: Annotated[Integer, Field(ge=0)] = Field(0, description="seed of markers and noise")
+    optimizer: Literal["lbfgs", "adam"] = Field("lbfgs", description='"lbfgs" or "adam"')
+    learning_rate: Positive = Field(0.05, description='step size of "adam"')
+    max_iter: Annotated[Integer, Field(ge=0)] = Field(100, description="optimiser iterations")
+    gtol: Positive = Field(
+        1e-10, description="stop when the gradient norm (unconstrained variables) is below"
+    )
+    case: Annotated[list[FitCase], BeforeValidator(_array_of_tables)] = Field(
+        [], description="more load cases ([[fit.case]])"
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if (self.target is None) == (self.observed is None):
+            raise fail("{at} needs exactly one of target = { E, nu } (synthetic) or observed")
+        if len(set(self.fields)) != len(self.fields):
+            raise fail(f"{{at}}.fields has duplicates: {list(self.fields)!r}")
+        n_reg = len(self.regions) + 1 if self.regions else 1
+        for sec in ("target", "initial"):
+            t = getattr(self, sec)
+            for k in ("E", "nu"):
+                val = None if t is None else getattr(t, k)
+                if val is not None and _n_values(val) not in (1, n_reg):
+                    raise fail(
+                        f"{{at}}.{sec}.{k} must have 1 or {n_reg} values (one per region), "
+                        f"got {_n_values(val)}"
+                    )
+        for i, c in enumerate(self.case):
+            key = f"[fit.case][{i}]"
+            if c.observed is not None and self.target is not None:
+                raise fail(f"{key}.observed: not with a synthetic [fit].target")
+            if c.observed is None and self.observed is not None:
+                raise fail(f"{key}.observed is required (the scene's targets come from files)")
+        return self
+
+
+# ----------------------------------------------------------------------------------------
+# the scene file
+# ----------------------------------------------------------------------------------------
+
+
+class SceneSpec(Table):
+    """A jaxelastic scene file."""
+
+    name: Str = Field("scene", description="label (output directory name, plot titles)")
+    description: Str = Field("", description="one line shown by `jaxelastic scenes`")
+    mesh: MeshSpec = Field(description="the mesh")
+    material: MaterialSpec = Field(description="the material")
+    dirichlet: Annotated[list[DirichletSpec], BeforeValidator(_array_of_tables)] = Field(
+        [], description="prescribed displacements ([[dirichlet]])"
+    )
+    traction: Annotated[list[TractionSpec], BeforeValidator(_array_of_tables)] = Field(
+        [], description="surface loads ([[traction]])"
+    )
+    point_load: Annotated[list[PointLoadSpec], BeforeValidator(_array_of_tables)] = Field(
+        [], description="nodal forces ([[point_load]])"
+    )
+    gravity: GravitySpec | None = Field(None, description="gravity")
+    solver: SolverSpec = Field(SolverSpec(), description="the Newton solver")
+    integrator: Integrator = Field(StaticIntegrator(), description="static (default) or dynamic")
+    output: OutputSpec = Field(OutputSpec(), description="outputs")
+    fit: FitSpec | None = Field(None, description="material identification (jaxelastic fit)")
+
+    @classmethod
+    def _unknown_key(cls, key: str, valid: list) -> str:
+        return f"unknown top-level key {key!r} (valid: {', '.join(valid)})"
+
+    @classmethod
+    def _prepare(cls, t: dict) -> dict:
+        for k in ("mesh", "material"):
+            if k not in t:
+                raise fail(f"[{k}] is required")
+        fit, mat = t.get("fit"), t.get("material")
+        if isinstance(fit, Mapping) and isinstance(mat, Mapping):  # initial guess: [material]
+            init = fit.get("initial", {})
+            if isinstance(init, Mapping):
+                ok = lambda v: isinstance(v, (int, float, list, tuple)) and not isinstance(v, bool)
+                init = {k: mat[k] for k in ("E", "nu") if ok(mat.get(k))} | dict(init)
+                t["fit"] = {**fit, "initial": init}
+        return t
+
+    @property
+    def static(self) -> bool:
+        """Whether the scene is static (``[integrator].type = "static"``)."""
+        return self.integrator.type == "static"
+
+    @property
+    def known_dim(self) -> int | None:
+        """The spatial dimension when a generator fixes it, else None (a mesh file)."""
+        return GENERATOR_DIM.get(self.mesh.generator)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        problem = self._cross_problem()
+        if problem is None and self.known_dim is not None:
+            problem = self.dim_problem(self.known_dim)
+        if problem is not None:
+            raise fail(problem)
+        return self
+
+    def _cross_problem(self) -> str | None:
+        """The first inconsistency between tables, or None."""
+        dynamic = not self.static
+        if self.fit is not None:
+            for k in ("E", "nu"):
+                if getattr(self.fit.initial, k) is None:
+                    return f"[fit].initial.{k} is required ([material] has no {k})"
+            if self.fit.target is not None and self.fit.target.refine > 1:
+                if self.mesh.generator is None:
+                    return "[fit].target.refine needs a [mesh].generator (not a mesh file)"
+            if dynamic:
+                return "[fit] needs a static scene ([integrator].type = 'static')"
+        if self.material.density is None:
+            if dynamic:
+                return "[material].density is required for a dynamic scene"
+            if self.gravity is not None:
+                return "[material].density is required with [gravity]"
+        if dynamic:
+            return None
+        if not self.dirichlet:
+            return (
+                "[dirichlet]: a static scene needs at least one Dirichlet condition "
+                "(else rigid motions are free)"
+            )
+        for i, d in enumerate(self.dirichlet):
+            if d.ramp_time is not None:
+                return f"[dirichlet][{i}].ramp_time is only valid in a dynamic scene"
+        return None
+
+    def dim_problem(self, dim: int) -> str | None:
+        """The first vector length or axis that does not fit a ``dim``-D mesh, or None."""
+        if dim == 3 and self.material.plane is not None:
+            return "[material].plane applies to 2D meshes only"
+        for kind, key, val in self._dim_items():
+            if kind == "vec" and len(val) != dim:
+                return f"{key} must have {dim} components (the mesh is {dim}D), got {len(val)}"
+            a = axis_index(val) if kind != "vec" else 0
+            if kind == "axis" and a >= dim:
+                return f"{key} must be an axis of a {dim}D mesh (0..{dim - 1}), got {a}"
+            if kind == "rotate" and dim == 2 and a != 2:
+                return f"{key}.axis must be 'z' (2) in 2D, got {a}"
+        return None
+
+    def _dim_items(self) -> Iterator[tuple[str, str, Any]]:
+        """``(kind, key, value)`` of every dimension-dependent entry, in file order."""
+        m = self.mesh
+        for k in ("size", "origin"):
+            if getattr(m, k) is not None and m.generator != "cook":
+                yield "vec", f"[mesh].{k}", getattr(m, k)
+        for i, d in enumerate(self.dirichlet):
+            key = f"[dirichlet][{i}]"
+            yield from _selector_items(f"{key}.nodes", d.nodes)
+            for j, a in enumerate(d.components or ()):
+                yield "axis", f"{key}.components[{j}]", a
+            u = d.displacement
+            if isinstance(u, tuple):
+                yield "vec", f"{key}.displacement", u
+            elif isinstance(u, RotateDisplacement):
+                r = u.rotate
+                if r.center is not None:
+                    yield "vec", f"{key}.displacement.rotate.center", r.center
+                yield "rotate", f"{key}.displacement.rotate", r.axis
+        for sec, where, loads_ in (
+            ("traction", "facets", self.traction),
+            ("point_load", "nodes", self.point_load),
+        ):
+            for i, ld in enumerate(loads_):
+                key = f"[{sec}][{i}]"
+                yield from _selector_items(f"{key}.{where}", getattr(ld, where))
+                for k in (ld._value_key, "total_force"):
+                    if getattr(ld, k) is not None:
+                        yield "vec", f"{key}.{k}", getattr(ld, k)
+        if self.gravity is not None:
+            yield "vec", "[gravity].g", self.gravity.g
+        iv = getattr(self.integrator, "initial_velocity", None)
+        if isinstance(iv, tuple):
+            yield "vec", "[integrator].initial_velocity", iv
+        for i, p in enumerate(self.output.probes):
+            yield "vec", f"[output].probes[{i}]", p
+
+
+def _selector_items(key: str, sel: Selector):
+    if sel.plane is not None:
+        yield "axis", f"{key}.plane.axis", sel.plane.axis
+    if sel.box is not None:
+        yield "vec", f"{key}.box.lo", sel.box.lo
+        yield "vec", f"{key}.box.hi", sel.box.hi
+
+
+# ----------------------------------------------------------------------------------------
+# entry points
+# ----------------------------------------------------------------------------------------
+
+
+def validate(raw: Mapping, label: str, base_dir: str) -> SceneSpec:
+    """Validate a raw scene (a dict as read from TOML).
+
+    Args:
+        raw: the scene; lists and tuples are both accepted for arrays.
+        label: how messages name the scene (a file name, or ``"<dict>"``).
+        base_dir: directory for relative mesh paths and ``module:function`` imports.
+    Raises:
+        SceneError: the first problems, each naming the key, the value and what is valid.
+    """
+    try:
+        spec = SceneSpec.model_validate(raw, context={"base_dir": base_dir})
+    except ValidationError as e:
+        raise from_validation_error(label, e) from None
+    _check_user_displacements(spec, label, base_dir)
+    return spec
+
+
+def _check_user_displacements(spec: SceneSpec, label: str, base_dir: str) -> None:
+    """A static scene's ``displacement = "module:function"`` must accept ``u(X)``."""
+    if not spec.static:
+        return
+    for i, d in enumerate(spec.dirichlet):
+        if isinstance(d.displacement, str):
+            fn = import_callable(d.displacement, base_dir)
+            if n_positional(fn) < 1:
+                raise SceneError(
+                    f"scene {label!r}: [dirichlet][{i}].displacement: {d.displacement!r} "
+                    "must accept u(X)"
+                )
+
+
+def _tidy(node):
+    """TOML has no null: optional keys are simply absent, so drop ``null`` alternatives,
+    ``default: null`` and pydantic's generated titles."""
+    if isinstance(node, list):
+        return [_tidy(v) for v in node]
+    if not isinstance(node, dict):
+        return node
+    out = {k: _tidy(v) for k, v in node.items() if k != "title" or not isinstance(v, str)}
+    if out.get("default", 0) is None:
+        del out["default"]
+    for key in ("anyOf", "oneOf"):
+        alts = [a for a in out.get(key, ()) if a != {"type": "null"}]
+        if key in out and len(alts) == 1:
+            del out[key]
+            out = {**alts[0], **out}
+        elif key in out:
+            out[key] = alts
+    return out
+
+
+def json_schema() -> dict:
+    """The JSON Schema (draft 2020-12) of a scene file, for editors and validators
+    (``jaxelastic schema > scene.schema.json``)."""
+    schema = _tidy(SceneSpec.model_json_schema())
+    schema["$defs"] = {k: {"title": k, **v} for k, v in schema["$defs"].items()}
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "jaxelastic scene",
+        **schema,
+    }

@@ -1,0 +1,125 @@
+"""One result type and one status enum for every solver: Newton, linear solvers, host back ends.
+
+A :class:`Solution` is a NamedTuple pytree ``(x, status, stats)`` usable under ``jit`` and
+``vmap`` and outside: ``status`` is an int32 array holding a :class:`Status`, ``stats`` a
+dict of arrays (iterations, residuals, histories, timings where known). Outside jit,
+:meth:`Solution.raise_if_failed` (or ``throw=True`` in :func:`jaxelastic.solve`) raises
+:class:`SolveError`, which names the status and what to try.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["Status", "Solution", "SolveError", "REASONS", "ADVICE", "RUNNING"]
+
+
+class Status(enum.IntEnum):
+    """Outcome of a solve (``Solution.status``), shared by all solvers."""
+
+    SUCCESS = 0
+    MAX_STEPS = 1
+    LINE_SEARCH_FAILED = 2
+    INVERTED = 3
+    NONFINITE = 4
+    NEGATIVE_CURVATURE = 5
+    NOT_POSITIVE_DEFINITE = 6
+
+
+RUNNING = -1
+"""Status of a loop that has not finished (never returned to users)."""
+
+REASONS = {
+    Status.SUCCESS: "converged",
+    Status.MAX_STEPS: "no convergence within the iteration limit",
+    Status.LINE_SEARCH_FAILED: "line search found no acceptable step (energy non-finite or "
+    "not decreasing along the Newton direction)",
+    Status.INVERTED: "the configuration has inverted elements (J ≤ 0) where the material "
+    "is undefined",
+    Status.NONFINITE: "non-finite energy or forces (NaN/inf)",
+    Status.NEGATIVE_CURVATURE: "the linear operator has non-positive curvature (indefinite "
+    "Hessian)",
+    Status.NOT_POSITIVE_DEFINITE: "the assembled matrix is not positive definite",
+}
+
+ADVICE = {
+    Status.SUCCESS: "",
+    Status.MAX_STEPS: "raise max_steps, apply the load in steps (je.solve_incremental), or "
+    "loosen rtol",
+    Status.LINE_SEARCH_FAILED: "apply the load in steps (je.solve_incremental), use "
+    "Newton(hessian='projected'), or check the material for J ≤ 0",
+    Status.INVERTED: "start from an uninverted x0 or use an inversion-safe material "
+    "(stable_neo_hookean, fixed_corotated)",
+    Status.NONFINITE: "check inputs for NaN/inf; with float32 loosen rtol or enable x64",
+    Status.NEGATIVE_CURVATURE: "use Newton(hessian='projected') or a direct linear solver",
+    Status.NOT_POSITIVE_DEFINITE: "add Dirichlet conditions that remove rigid motions, or use "
+    "Newton(hessian='projected')",
+}
+
+
+class Solution(NamedTuple):
+    """Result of a solve.
+
+    Attributes:
+        x: the solution: ``(n_nodes, dim)`` positions for Newton, the solution vector for a
+            linear solve.
+        status: int32 array holding a :class:`Status` (batched under ``vmap``).
+        stats: dict of arrays. Newton: ``steps``, ``linear_iterations``, ``residual``
+            [force], ``energy``, ``residual_history`` ``(max_steps + 1,)`` (NaN-padded),
+            ``linear_history`` ``(max_steps,)``, ``step_history`` ``(max_steps,)``
+            (accepted step lengths, NaN-padded), ``line_search_cutbacks``,
+            ``negative_curvature`` (Newton steps whose linear solve met it),
+            ``projected`` (steps whose host matrix was PSD-projected), ``wall_time`` [s]
+            (NaN inside jit). Linear: ``iterations``, ``residual``.
+    """
+
+    x: Any
+    status: jax.Array
+    stats: dict
+
+    @property
+    def ok(self) -> jax.Array:
+        """``status == SUCCESS`` as a bool array (usable under jit; ``bool()`` it outside)."""
+        return jnp.asarray(self.status) == Status.SUCCESS
+
+    @property
+    def reason(self) -> str:
+        """Human-readable status (outside jit, unbatched)."""
+        return REASONS[Status(int(self.status))]
+
+    def raise_if_failed(self, what: str = "solve") -> Solution:
+        """Raise :class:`SolveError` unless SUCCESS (outside jit); return self otherwise."""
+        if int(self.status) != Status.SUCCESS:
+            raise SolveError(self, what)
+        return self
+
+
+class SolveError(RuntimeError):
+    """A solve did not succeed (raised only outside jit, with ``throw=True``).
+
+    Attributes:
+        solution: the failed :class:`Solution`; status: its :class:`Status`.
+    """
+
+    def __init__(self, solution: Solution, what: str = "solve"):
+        st = Status(int(solution.status))
+        stats = solution.stats
+        detail = []
+        if "steps" in stats:
+            detail.append(f"after {int(stats['steps'])} iterations")
+        elif "iterations" in stats:
+            detail.append(f"after {int(stats['iterations'])} iterations")
+        if "residual" in stats:
+            detail.append(f"residual {float(stats['residual']):.3e}")
+        tail = f" ({', '.join(detail)})" if detail else ""
+        advice = ADVICE[st]
+        super().__init__(
+            f"{what} failed: {st.name}: {REASONS[st]}{tail}"
+            + (f"; try: {advice}" if advice else "")
+        )
+        self.solution = solution
+        self.status = st
