@@ -10,6 +10,7 @@ The library never changes JAX's global configuration: enable float64 yourself wi
 ``jax.config.update("jax_enable_x64", True)`` (tests, scripts and the CLI do).
 """
 
+from . import benchmarks as benchmarks
 from . import dynamics as dynamics
 from . import fitting as fitting
 from . import io as io

@@ -41,9 +41,9 @@ def cache_dir() -> str:
 
 def _parse_value(text: str):
     """A ``--set`` value in TOML syntax; a bare word is a string."""
-    try:
+    if sys.version_info >= (3, 11):
         import tomllib
-    except ModuleNotFoundError:  # Python < 3.11
+    else:  # Python < 3.11
         import tomli as tomllib
     try:
         return tomllib.loads(f"v = {text}")["v"]

@@ -28,8 +28,9 @@ of μ; wherever ``|P| ≥ μ`` it is an ordinary relative error. For the mesh ch
 reference is far from zero (the mesh is deformed) and the floor is the smallest positive
 float.
 
-Cases outside a model's domain are skipped (no row): neo-Hookean needs J > 0 (it is +∞
-otherwise), and ``stable_neo_hookean_log`` is defined in 3D only.
+Cases outside a model's domain are skipped (no row): neo-Hookean and the rubber/tissue
+families need J > 0 and a finite ψ (they are +∞ otherwise: Gent beyond its locking
+stretch, the HGO exponential past overflow at J = 1e-3), and ``stable_neo_hookean_log`` is defined in 3D only.
 
 Run it as ``python -m jaxelastic crosscheck`` (or :func:`main`). The checks need float64:
 :func:`main` enables it; callers of :func:`crosscheck` must enable it themselves with
@@ -75,8 +76,12 @@ FD_TOL = 1e-6
 FIVE_STEP_TOL = 1e-12
 """Required agreement of the five-step hand forces with autodiff forces (relative)."""
 
-MODELS = tuple(name for name in materials.BUILTIN if name in reference.HAND_P)
-"""Built-in models that have a hand-derived P (all of them)."""
+MODELS = tuple(
+    name for name in (*materials.BUILTIN, *materials.FAMILIES) if name in reference.HAND_P
+)
+"""Built-in models that have a hand-derived P (all of them): the Lamé-parameter models of
+:data:`jaxelastic.materials.BUILTIN` and the rubber/tissue :data:`~jaxelastic.materials.FAMILIES`
+(checked at their documented typical parameters ``<name>_params()``)."""
 
 _FD_STEP = 1e-5  # central-difference step [length]; truncation ~h², round-off ~eps/h
 _SEED = 20240611
@@ -86,9 +91,41 @@ def _domain_ok(model: str, dim: int, J: float) -> bool:
     """Whether ``model`` is defined at a deformation with determinant ``J`` in ``dim``."""
     if model == "stable_neo_hookean_log" and dim != 3:
         return False
-    if model == "neo_hookean" and not J > 0:
+    if (model == "neo_hookean" or model in materials.FAMILIES) and not J > 0:
         return False
     return True
+
+
+def _finite(psi, F, params) -> bool:
+    """Whether ``psi(F)`` is finite (outside the domain, e.g. Gent past its locking
+    stretch or an overflowing HGO exponential, the models return +inf: no row)."""
+    return bool(np.isfinite(np.asarray(psi(jnp.asarray(F), params))))
+
+
+def _psi(model: str):
+    return materials.BUILTIN[model] if model in materials.BUILTIN else materials.FAMILIES[model]
+
+
+def _model_params(model: str, lame_params: Lame):
+    """The parameters a model is checked at: ``lame_params`` for the Lamé models, the
+    documented defaults ``<name>_params()`` (float64) for the rubber/tissue families."""
+    if model in materials.BUILTIN:
+        return lame_params
+    return jax.tree_util.tree_map(
+        lambda v: jnp.asarray(v, jnp.float64), materials.FAMILY_PARAMS[model]()
+    )
+
+
+def _stress_scale(params) -> float:
+    """The absolute stress floor of the P comparison: the initial shear modulus."""
+    return float(params.mu if isinstance(params, Lame) else params.shear_modulus)
+
+
+def _cell_params(params, n_cells: int):
+    """``params`` ready for mesh-level calls: shared fibre directions broadcast per cell."""
+    if isinstance(params, materials.HolzapfelGasserOgden):
+        return materials.per_cell_fibres(params, n_cells)
+    return params
 
 
 def _rotation(dim: int, angle: float, axis=(1.0, 2.0, 3.0)) -> np.ndarray:
@@ -229,13 +266,14 @@ _COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
 @functools.partial(jax.jit, static_argnames=("psi", "hand"), compiler_options=_COMPILER_OPTIONS)
-def _checks(Fs, x, mesh, p, *, psi, hand):
+def _checks(Fs, x, mesh, p, pc, *, psi, hand):
     """Every compared quantity of one model, in one compiled function.
 
     Args:
         Fs: ``(n_cases, d, d)`` deformation gradients of the P battery.
         x: ``(n_nodes, d)`` deformed positions on ``mesh``.
-        p: Lamé parameters; psi, hand: ψ and its hand-derived P (static).
+        p: shared material parameters (P battery); pc: the same for the mesh (shared
+            vectors broadcast per cell); psi, hand: ψ and its hand-derived P (static).
 
     Returns:
         ``P_auto, P_hand`` ``(n_cases, d, d)``; ``fd_grad`` ``(n·d,)``; ``f`` ``(n, d)``;
@@ -248,7 +286,7 @@ def _checks(Fs, x, mesh, p, *, psi, hand):
     h = _FD_STEP
 
     def energy_and_forces(y):
-        return energy(psi, y, mesh, p), forces(psi, y, mesh, p)
+        return energy(psi, y, mesh, pc), forces(psi, y, mesh, pc)
 
     # both FD stencils from one batched evaluation at x ± h·e_i
     e_pm, f_pm = jax.vmap(energy_and_forces)(
@@ -256,26 +294,28 @@ def _checks(Fs, x, mesh, p, *, psi, hand):
     )
     fd_grad = (e_pm[: n * d] - e_pm[n * d :]) / (2.0 * h)  # (n·d,) = ∂E/∂x_i
     fd_hess = -(f_pm[: n * d] - f_pm[n * d :]) / (2.0 * h)  # (n·d, n, d) = H e_i
-    f = forces(psi, x, mesh, p)
-    hv = jax.vmap(lambda v: hvp(psi, x, v, mesh, p))(basis)  # (n·d, n, d)
-    f5 = reference.five_step_forces(hand, x, mesh, p)
+    f = forces(psi, x, mesh, pc)
+    hv = jax.vmap(lambda v: hvp(psi, x, v, mesh, pc))(basis)  # (n·d, n, d)
+    f5 = reference.five_step_forces(hand, x, mesh, pc)
     return P_auto, P_hand, fd_grad, f, fd_hess, hv, f5
 
 
-def _model_rows(model: str, dim: int, params: Lame) -> list[dict]:
+def _model_rows(model: str, dim: int, params) -> list[dict]:
     if not _domain_ok(model, dim, 1.0):
         return []
+    psi = _psi(model)
     cases = [
         (name, F)
         for name, F in deformation_battery(dim)
-        if _domain_ok(model, dim, np.linalg.det(F))
+        if _domain_ok(model, dim, np.linalg.det(F)) and _finite(psi, F, params)
     ]
     Fs = jnp.asarray(np.stack([F for _, F in cases]))  # (n_cases, d, d)
     mesh, x, label = _test_mesh(dim)
-    psi, hand = materials.BUILTIN[model], reference.HAND_P[model]
-    out = _checks(Fs, x, mesh, params, psi=psi, hand=hand)
+    hand = reference.HAND_P[model]
+    pc = _cell_params(params, mesh.n_cells)
+    out = _checks(Fs, x, mesh, params, pc, psi=psi, hand=hand)
     P_auto, P_hand, fd_grad, f, fd_hess, hv, f5 = (np.asarray(a) for a in out)
-    mu = float(params.mu)
+    mu = _stress_scale(params)
     rows = [
         _row(model, dim, "P", name, relative_difference(P_auto[i], P_hand[i], floor=mu), P_TOL)
         for i, (name, _) in enumerate(cases)
@@ -294,8 +334,9 @@ def crosscheck(dims=(2, 3), models=None, params: Lame | None = None) -> list[dic
     Args:
         dims: spatial dimensions to check, a subset of ``(2, 3)``.
         models: built-in model names (default: all of :data:`MODELS`).
-        params: scalar Lamé parameters (default: ``lame(E=1e5, ν=0.3)``: μ ≈ 3.8e4,
-            λ ≈ 5.8e4); μ is also the absolute scale of the P comparison.
+        params: scalar Lamé parameters of the Lamé models (default: ``lame(E=1e5, ν=0.3)``:
+            μ ≈ 3.8e4, λ ≈ 5.8e4); the rubber/tissue families use their ``<name>_params()``.
+            The initial shear modulus is the absolute scale of the P comparison.
 
     Returns:
         A list of dicts with keys ``model`` (str), ``dim`` (int), ``check`` (``"P"``,
@@ -325,7 +366,7 @@ def crosscheck(dims=(2, 3), models=None, params: Lame | None = None) -> list[dic
     rows: list[dict] = []
     for model in models:
         for dim in dims:
-            rows += _model_rows(model, dim, params)
+            rows += _model_rows(model, dim, _model_params(model, params))
     return rows
 
 

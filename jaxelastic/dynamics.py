@@ -48,6 +48,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.core import Tracer
 
 from .energy import energy
 from .loads import Dirichlet
@@ -117,10 +118,17 @@ def kinetic_energy(mass: jax.Array, v: jax.Array) -> jax.Array:
     return 0.5 * jnp.sum(mass[:, None] * v * v)
 
 
+def _mass(base: Potential) -> jax.Array:
+    """The lumped masses of ``base``; TypeError when it has none (a static potential)."""
+    if base.mass is None:
+        raise TypeError("Potential.mass is None: the kinetic energy needs lumped masses")
+    return base.mass
+
+
 def total_energy(base: Potential, state: State) -> jax.Array:
     """Kinetic + elastic + external potential energy of ``state`` (for energy plots)."""
     static = base.replace(mass=None, x_tilde=None, inertia_weight=None)
-    return kinetic_energy(base.mass, state.v) + potential_value(static, state.x)
+    return kinetic_energy(_mass(base), state.v) + potential_value(static, state.x)
 
 
 def _step_potential(base: Potential, state: State, integ: Integrator, bdf2_now):
@@ -153,10 +161,12 @@ def _start(pot: Potential, state: State, warm):
     """Start Newton from whichever of x̃, x_n (and ``warm``) has the lowest step potential:
     x̃ saves a Newton iteration on smooth motion; at large h it can overshoot or invert,
     where x_n is better."""
-    e_tilde = potential_value(pot, pot.x_tilde)
+    x_tilde = pot.x_tilde
+    assert x_tilde is not None  # set by _step_potential
+    e_tilde = potential_value(pot, x_tilde)
     e_n = potential_value(pot, state.x)
     use_tilde = jnp.isfinite(e_tilde) & ~(e_tilde > e_n)
-    x_start = jnp.where(use_tilde, pot.x_tilde, state.x)
+    x_start = jnp.where(use_tilde, x_tilde, state.x)
     if warm is not None:
         better = potential_value(pot, warm) < jnp.minimum(e_n, jnp.where(use_tilde, e_tilde, e_n))
         x_start = jnp.where(better, warm, x_start)
@@ -191,7 +201,7 @@ def _check_dynamic(base: Potential, integ: Integrator):
         )
     if not isinstance(integ, Integrator):
         raise TypeError(f"integ must be a je.Integrator(h, ...), got {type(integ).__name__}")
-    if not isinstance(integ.h, jax.core.Tracer) and not integ.h > 0:
+    if not isinstance(integ.h, Tracer) and not integ.h > 0:
         raise ValueError(f"time step h must be > 0, got {integ.h!r}")
     if integ.method not in ("backward_euler", "bdf2"):
         raise ValueError(f"method must be 'backward_euler' or 'bdf2', got {integ.method!r}")
@@ -335,12 +345,13 @@ def rollout(
         carry, ys = _segmented_scan(body, carry, warm, n_steps, checkpoint, x_shape)
     else:
         carry, ys = jax.lax.scan(body, carry, warm, length=n_steps)
-    return carry[0], Trajectory(*ys)
+    frames, status, stats = ys
+    return carry[0], Trajectory(frames, status, stats)
 
 
 def _energies(base: Potential, x, v):
     """``[½vᵀMv, E(x), −f_extᵀ(x − X)]`` of a state (kinetic, elastic, external)."""
-    ke = kinetic_energy(base.mass, v)
+    ke = kinetic_energy(_mass(base), v)
     el = energy(base.psi, x, base.mesh, base.params)
     ext = (
         jnp.zeros((), x.dtype)

@@ -42,6 +42,7 @@ __all__ = [
     "hvp",
     "element_forces",
     "element_hessians",
+    "element_gradient_kernel",
     "project_psd",
     "assemble",
     "cell_params_axes",
@@ -143,7 +144,11 @@ def _is_fbar(mesh) -> str | None:
     return None if form == "standard" else form
 
 
-def _element_force(psi, fbar: str | None = None):
+def element_gradient_kernel(psi, fbar: str | None = None):
+    """The per-element energy gradient ``(xe (k, d), dN (q, k, d), w (q,), params) ↦
+    ∂E_e/∂xe (k, d)`` of ψ (autodiff P contracted with the shape-function gradients; with
+    ``fbar="fbar"``/``"bbar"`` the gradient of the F̄ element energy). Unbatched: vmap it
+    over cells (as :func:`element_forces` does)."""
     if fbar:
         return jax.grad(_fbar_element_energy(psi, fbar))
     P = first_piola(psi)
@@ -163,7 +168,7 @@ def element_forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     (Element *forces* are the negatives; this is the quantity that gets assembled.)
     """
     xe = x[mesh.cells]
-    fe = _element_force(psi, _is_fbar(mesh))
+    fe = element_gradient_kernel(psi, _is_fbar(mesh))
     return _per_cell(fe, params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)
 
 

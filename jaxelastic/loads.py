@@ -23,6 +23,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .energy import first_piola, forces
 from .kinematics import deformation_gradients
@@ -82,7 +83,7 @@ def fix(
     mesh: Mesh,
     nodes,
     components=None,
-    displacement: np.ndarray | Callable | None = None,
+    displacement: ArrayLike | Callable | None = None,
 ) -> Dirichlet:
     """Prescribe the displacement of ``nodes`` (all components or some).
 
@@ -187,7 +188,7 @@ def facet_integrals(points, facets, element: Element | str | None = None):
     Args:
         points: ``(n_nodes, dim)`` rest positions.
         facets: ``(m, n_facet_nodes)`` node indices (as :func:`~jaxelastic.mesh.boundary_facets`).
-        element: the mesh's element (name or :class:`~jaxelastic.elements.Element`); by
+        element: the mesh's element (name or :class:`~jaxelastic.mesh.elements.Element`); by
             default P1 or P2 from the number of facet nodes (composite meshes: pass it).
 
     Returns:

@@ -1,5 +1,9 @@
 """Built-in hyperelastic materials: strain-energy densities ψ(F, params) → scalar.
 
+The rubber and soft-tissue families (Mooney–Rivlin, Yeoh, Ogden, Gent, Arruda–Boyce,
+Holzapfel–Gasser–Ogden) live in :mod:`jaxelastic.rubber` and :mod:`jaxelastic.fibres` and
+are re-exported here with their parameter types (:data:`FAMILIES`, :data:`FAMILY_PARAMS`).
+
 A material is nothing but a function of one unbatched deformation gradient ``F`` of shape
 ``(d, d)`` (d = 2 or 3) and a parameter pytree. Every derived quantity (P, forces, HVP,
 element Hessians) is obtained by JAX transformations; any user function with the same
@@ -28,7 +32,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .fibres import HolzapfelGasserOgden as HolzapfelGasserOgden
+from .fibres import fibre_pair as fibre_pair
+from .fibres import holzapfel_gasser_ogden as holzapfel_gasser_ogden
+from .fibres import holzapfel_gasser_ogden_params as holzapfel_gasser_ogden_params
+from .fibres import per_cell_fibres as per_cell_fibres
 from .kinematics import det, green_strain, small_strain, trace_S
+from .rubber import ArrudaBoyce as ArrudaBoyce
+from .rubber import Gent as Gent
+from .rubber import MooneyRivlin as MooneyRivlin
+from .rubber import Ogden as Ogden
+from .rubber import Yeoh as Yeoh
+from .rubber import arruda_boyce as arruda_boyce
+from .rubber import arruda_boyce_params as arruda_boyce_params
+from .rubber import gent as gent
+from .rubber import gent_params as gent_params
+from .rubber import mooney_rivlin as mooney_rivlin
+from .rubber import mooney_rivlin_params as mooney_rivlin_params
+from .rubber import ogden as ogden
+from .rubber import ogden_params as ogden_params
+from .rubber import yeoh as yeoh
+from .rubber import yeoh_params as yeoh_params
 
 __all__ = [
     "Lame",
@@ -42,6 +66,28 @@ __all__ = [
     "fixed_corotated",
     "arap",
     "BUILTIN",
+    "MooneyRivlin",
+    "mooney_rivlin",
+    "mooney_rivlin_params",
+    "Yeoh",
+    "yeoh",
+    "yeoh_params",
+    "Ogden",
+    "ogden",
+    "ogden_params",
+    "Gent",
+    "gent",
+    "gent_params",
+    "ArrudaBoyce",
+    "arruda_boyce",
+    "arruda_boyce_params",
+    "HolzapfelGasserOgden",
+    "holzapfel_gasser_ogden",
+    "holzapfel_gasser_ogden_params",
+    "fibre_pair",
+    "per_cell_fibres",
+    "FAMILIES",
+    "FAMILY_PARAMS",
 ]
 
 
@@ -236,3 +282,26 @@ BUILTIN = {
     "arap": arap,
 }
 """Name → ψ of every built-in model (a read-only mapping by convention)."""
+
+
+FAMILIES = {
+    "mooney_rivlin": mooney_rivlin,
+    "yeoh": yeoh,
+    "ogden": ogden,
+    "gent": gent,
+    "arruda_boyce": arruda_boyce,
+    "holzapfel_gasser_ogden": holzapfel_gasser_ogden,
+}
+"""Name → ψ of the rubber and soft-tissue models (:mod:`jaxelastic.rubber`,
+:mod:`jaxelastic.fibres`), each with its own parameter type (not :class:`Lame`)."""
+
+FAMILY_PARAMS = {
+    "mooney_rivlin": mooney_rivlin_params,
+    "yeoh": yeoh_params,
+    "ogden": ogden_params,
+    "gent": gent_params,
+    "arruda_boyce": arruda_boyce_params,
+    "holzapfel_gasser_ogden": holzapfel_gasser_ogden_params,
+}
+"""Name → ``<name>_params(**overrides)``, the documented typical parameters of each of
+:data:`FAMILIES` (their types expose ``shear_modulus`` and ``bulk_modulus``)."""

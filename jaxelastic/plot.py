@@ -201,14 +201,18 @@ def shapes(ax, mesh, configurations, *, axes=None, wire: bool = True):
     if wire and len(labels) > 1:
         xw = configs[labels[1]][:, [i, j]]
         ax.add_collection(
-            LineCollection(xw[wire_edges(mesh)], colors="C0", linewidths=0.3, alpha=0.35)
+            LineCollection(list(xw[wire_edges(mesh)]), colors="C0", linewidths=0.3, alpha=0.35)
         )
     for k, label in enumerate(labels):
         st = dict(_SHAPE_STYLES[min(k, len(_SHAPE_STYLES) - 1)])
         xy = configs[label][:, [i, j]]
         ax.add_collection(
             LineCollection(
-                xy[feat], colors=st["color"], linewidths=st["lw"], linestyles=st["ls"], label=label
+                list(xy[feat]),
+                colors=st["color"],
+                linewidths=st["lw"],
+                linestyles=st["ls"],
+                label=label,
             )
         )
     allxy = np.concatenate([c[:, [i, j]] for c in configs.values()])
@@ -308,8 +312,11 @@ def tip_displacement_figure(t, u, *, static=None, title: str | None = None):
     ]
     for a in shown:
         ax.plot(t, u[:, a], color=f"C{a}", lw=1.5, label=f"$u_{_AXIS_NAMES[a]}$")
-    for a in shown if static is not None else ():
-        ax.axhline(static[a], color=f"C{a}", lw=1.0, ls="--", label=f"static $u_{_AXIS_NAMES[a]}$")
+    if static is not None:
+        for a in shown:
+            ax.axhline(
+                static[a], color=f"C{a}", lw=1.0, ls="--", label=f"static $u_{_AXIS_NAMES[a]}$"
+            )
     ax.axhline(0.0, color="0.6", lw=0.8, zorder=0)
     ax.set_xlabel("time $t$ [s]")
     ax.set_ylabel("displacement [m]")

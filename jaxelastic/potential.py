@@ -16,13 +16,12 @@ load term and statics no inertia.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from .energy import assemble, element_hessians, energy, forces, hvp
+from .energy import Psi, assemble, element_hessians, energy, forces, hvp
 from .mesh import Mesh
 
 __all__ = [
@@ -63,7 +62,7 @@ class Potential:
     x_prev: jax.Array | None = None
     mass_damping: jax.Array | None = None
     stiffness_damping: jax.Array | None = None
-    psi: Callable = dataclasses.field(default=None, metadata=dict(static=True))
+    psi: Psi = dataclasses.field(kw_only=True, metadata=dict(static=True))
 
     def replace(self, **kw) -> Potential:
         return dataclasses.replace(self, **kw)
@@ -86,20 +85,30 @@ jax.tree_util.register_dataclass(
 )
 
 
+def _needs(a: jax.Array | None, name: str) -> jax.Array:
+    """``a``, or TypeError when a term that is switched on lacks the field it needs."""
+    if a is None:
+        raise TypeError(f"Potential.{name} is None but a term that needs it is set")
+    return a
+
+
 def value(pot: Potential, x: jax.Array) -> jax.Array:
     """Π(x), a scalar [energy]; +inf/NaN propagate (the line search treats them as +inf)."""
     v = energy(pot.psi, x, pot.mesh, pot.params)
     if pot.f_ext is not None:
         v = v - jnp.sum(pot.f_ext * x)
     if pot.mass is not None:
-        dx = x - pot.x_tilde
-        v = v + 0.5 * pot.inertia_weight * jnp.sum(pot.mass[:, None] * dx * dx)
+        dx = x - _needs(pot.x_tilde, "x_tilde")
+        v = v + 0.5 * _needs(pot.inertia_weight, "inertia_weight") * jnp.sum(
+            pot.mass[:, None] * dx * dx
+        )
     if pot.mass_damping is not None:
-        dx = x - pot.x_prev
-        v = v + 0.5 * pot.mass_damping * jnp.sum(pot.mass[:, None] * dx * dx)
+        dx = x - _needs(pot.x_prev, "x_prev")
+        v = v + 0.5 * pot.mass_damping * jnp.sum(_needs(pot.mass, "mass")[:, None] * dx * dx)
     if pot.stiffness_damping is not None:
-        dx = x - pot.x_prev
-        Kdx = hvp(pot.psi, pot.x_prev, dx, pot.mesh, pot.params)
+        x_prev = _needs(pot.x_prev, "x_prev")
+        dx = x - x_prev
+        Kdx = hvp(pot.psi, x_prev, dx, pot.mesh, pot.params)
         v = v + 0.5 * pot.stiffness_damping * jnp.sum(dx * Kdx)
     return v
 
@@ -110,24 +119,25 @@ def gradient(pot: Potential, x: jax.Array) -> jax.Array:
     if pot.f_ext is not None:
         g = g - pot.f_ext
     if pot.mass is not None:
-        g = g + pot.inertia_weight * pot.mass[:, None] * (x - pot.x_tilde)
+        w = _needs(pot.inertia_weight, "inertia_weight")
+        g = g + w * pot.mass[:, None] * (x - _needs(pot.x_tilde, "x_tilde"))
     if pot.mass_damping is not None:
-        g = g + pot.mass_damping * pot.mass[:, None] * (x - pot.x_prev)
+        dx = x - _needs(pot.x_prev, "x_prev")
+        g = g + pot.mass_damping * _needs(pot.mass, "mass")[:, None] * dx
     if pot.stiffness_damping is not None:
-        g = g + pot.stiffness_damping * hvp(
-            pot.psi, pot.x_prev, x - pot.x_prev, pot.mesh, pot.params
-        )
+        x_prev = _needs(pot.x_prev, "x_prev")
+        g = g + pot.stiffness_damping * hvp(pot.psi, x_prev, x - x_prev, pot.mesh, pot.params)
     return g
 
 
-def mass_diagonal(pot: Potential):
+def mass_diagonal(pot: Potential) -> jax.Array | None:
     """Diagonal (per-node) inertia + mass-damping part of the Hessian, ``(n_nodes,)`` [mass/time²],
     or None (statics)."""
     w = None
     if pot.mass is not None:
-        w = pot.inertia_weight * pot.mass
+        w = _needs(pot.inertia_weight, "inertia_weight") * pot.mass
     if pot.mass_damping is not None:
-        w = w + pot.mass_damping * pot.mass
+        w = _needs(w, "mass") + pot.mass_damping * _needs(pot.mass, "mass")
     return w
 
 
@@ -138,7 +148,8 @@ def hessian_vp(pot: Potential, x: jax.Array, v: jax.Array) -> jax.Array:
     if w is not None:
         Hv = Hv + w[:, None] * v
     if pot.stiffness_damping is not None:
-        Hv = Hv + pot.stiffness_damping * hvp(pot.psi, pot.x_prev, v, pot.mesh, pot.params)
+        x_prev = _needs(pot.x_prev, "x_prev")
+        Hv = Hv + pot.stiffness_damping * hvp(pot.psi, x_prev, v, pot.mesh, pot.params)
     return Hv
 
 

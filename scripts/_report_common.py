@@ -1,22 +1,22 @@
 """Helpers shared by ``report_accuracy.py`` and ``report_stability.py`` (not a library module).
 
-Atomic output files, the machine description stamped on every plot, Pareto fronts, rates,
-and the element variants (P1, P2, F-bar) as mesh-generator keywords. The problems
-themselves are in :mod:`jaxelastic.benchmarks`.
+Atomic output files (on :func:`jaxelastic.io.write_atomic`), the machine description
+stamped on every plot, Pareto fronts, rates, and the element variants (P1, P2, F-bar) as
+mesh-generator keywords. The problems themselves are in :mod:`jaxelastic.benchmarks`.
 """
 
 from __future__ import annotations
 
 import csv
 import io
-import json
-import math
 import os
 import platform
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from jaxelastic import io as jio
+from jaxelastic.io import write_atomic
 
 # element variant -> keyword arguments of the mesh generators (rectangle, box, cook_membrane)
 ELEMENT_KW = {
@@ -59,32 +59,26 @@ def machine() -> str:
     )
 
 
-def atomic_write(path: Path, data: str | bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and ``os.replace``."""
+def write_text(path: Path, text: str) -> None:
+    """Write ``text`` (UTF-8, line endings as given) atomically to ``path``, creating its
+    directory."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "wb") as f:
-        f.write(data.encode() if isinstance(data, str) else data)
-    os.replace(tmp, path)
+    data = text.encode()
 
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
+            f.write(data)
 
-def _clean(v):
-    if isinstance(v, dict):
-        return {k: _clean(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_clean(x) for x in v]
-    if isinstance(v, (np.floating, float)):
-        return None if not math.isfinite(float(v)) else float(v)
-    if isinstance(v, np.integer):
-        return int(v)
-    if isinstance(v, np.bool_):
-        return bool(v)
-    return v
+    write_atomic(path, write)
 
 
 def write_json(path: Path, obj) -> None:
-    atomic_write(path, json.dumps(_clean(obj), indent=1))
+    """Write ``obj`` as JSON (indent 1, NaN/inf as ``null``) atomically to ``path``,
+    creating its directory."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    jio.write_json(path, obj, indent=1, nonfinite="null")
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
@@ -96,13 +90,14 @@ def write_csv(path: Path, rows: list[dict]) -> None:
     w.writeheader()
     for r in rows:
         w.writerow({k: r.get(k, "") for k in keys})
-    atomic_write(path, buf.getvalue())
+    write_text(path, buf.getvalue())
 
 
 def save_figure(fig, path: Path, dpi: int = 110) -> None:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
-    atomic_write(path, buf.getvalue())
+    """Save ``fig`` as a PNG atomically to ``path``, creating its directory."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight"))
 
 
 def pareto(times, errors) -> np.ndarray:

@@ -33,26 +33,18 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
-import tempfile
 import time
 
 import numpy as np
+
+from jaxelastic.io import write_atomic, write_json
 
 JAXFEM = dict(tets=5184, value_and_grad=1.19, forward=0.85)
 TORCHFEM = dict(tets=4320, backward=1.95)
 TARGET = dict(value_and_grad=0.3, ratio=1.5)
 E_TRUE, NU_TRUE = 1.0e6, 0.3
-
-
-def _write_atomic(path: str, data: bytes) -> None:
-    d = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-")
-    with os.fdopen(fd, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
 
 
 def problem(n=(24, 6, 6), size=(4.0, 1.0, 1.0)):
@@ -280,8 +272,6 @@ def _table(rows, fit_row, n_cells) -> str:
 
 
 def _plot(rows, path: str) -> None:
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -300,10 +290,10 @@ def _plot(rows, path: str) -> None:
     ax.set_title("3D neo-Hookean cantilever, ~5k tets (warm, median)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=120)
-    plt.close(fig)
-    _write_atomic(path, buf.getvalue())
+    try:
+        write_atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+    finally:
+        plt.close(fig)
 
 
 def main(argv=None) -> int:
@@ -364,9 +354,7 @@ def main(argv=None) -> int:
         references=dict(jaxfem=JAXFEM, torchfem=TORCHFEM, target=TARGET),
         note="warm = median of repeated calls of the compiled function; shared machine, noisy",
     )
-    _write_atomic(
-        os.path.join(args.out, "bench_fit.json"), (json.dumps(result, indent=1) + "\n").encode()
-    )
+    write_json(os.path.join(args.out, "bench_fit.json"), result, indent=1, nonfinite="string")
     _plot(rows, os.path.join(args.out, "bench_fit.png"))
     print(f"wrote {args.out}/bench_fit.json and bench_fit.png", file=sys.stderr)
     return 0

@@ -55,11 +55,9 @@ measurement is skipped with the reason printed (e.g. PSD projection at 1M).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
-import tempfile
 import time
 
 import jax
@@ -68,7 +66,8 @@ import numpy as np
 
 import jaxelastic as je
 from jaxelastic import kinematics, materials, reference
-from jaxelastic.energy import _element_force, cell_params_axes
+from jaxelastic.energy import cell_params_axes, element_gradient_kernel
+from jaxelastic.io import write_json
 
 SIZES = {"small": (10_000,), "medium": (10_000, 100_000), "all": (10_000, 100_000, 1_000_000)}
 
@@ -172,7 +171,9 @@ def model_kernels(name: str, psi) -> dict:
     hand = psi_with_P(psi, reference.HAND_P[name])
 
     def elem_kernel(x, v, m, p, perm, seg):
-        fe = jax.vmap(_element_force(psi), in_axes=(0, 0, 0, cell_params_axes(p, m.n_cells)))
+        fe = jax.vmap(
+            element_gradient_kernel(psi), in_axes=(0, 0, 0, cell_params_axes(p, m.n_cells))
+        )
         return fe(x[m.cells], m.dN, m.weights, p)
 
     ks = {
@@ -452,20 +453,6 @@ def format_tables(rows, rats) -> str:
     return "\n".join(lines)
 
 
-def write_json(path: str, data: dict) -> None:
-    """Write ``data`` atomically (temp file in the same directory + ``os.replace``)."""
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".bench_kernels.", suffix=".json")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", choices=list(SIZES), default="all")
@@ -555,7 +542,8 @@ def main(argv=None) -> dict:
     }
     if args.out:
         path = os.path.join(args.out, "bench_kernels.json")
-        write_json(path, result)
+        os.makedirs(args.out, exist_ok=True)
+        write_json(path, result, indent=1, nonfinite="string")
         log(f"wrote {path}")
     return result
 

@@ -37,7 +37,6 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
 import threading  # noqa: E402
@@ -52,6 +51,7 @@ import numpy as np  # noqa: E402
 import psutil  # noqa: E402
 
 import jaxelastic  # noqa: E402
+from jaxelastic.io import write_json  # noqa: E402
 from jaxelastic.kinematics import det  # noqa: E402
 from jaxelastic.solvers.host import HostLinearSolver  # noqa: E402
 
@@ -339,13 +339,6 @@ def print_table(records):
             left = " " * len(left)
 
 
-def write_json(path, payload):
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(payload, f, indent=1)
-    os.replace(tmp, path)
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", default="10,19,29", help="comma-separated n (default 10,19,29)")
@@ -380,7 +373,7 @@ def main(argv=None):
             records.append(bench_case(kind, n, args))
             meta["loadavg_now"] = os.getloadavg()
             meta["max_rss_mb"] = psutil.Process().memory_info().rss / 2**20
-            write_json(path, dict(meta=meta, results=records))
+            write_json(path, dict(meta=meta, results=records), indent=1, nonfinite="string")
     print()
     print_table(records)
     print(f"\nload average at start {meta['loadavg_start']}, end {os.getloadavg()}")

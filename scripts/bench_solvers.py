@@ -28,11 +28,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import resource
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -244,14 +242,6 @@ def _run_sub(args: list[str]) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--sizes", default="10,19,29")
@@ -318,7 +308,10 @@ def main(argv=None) -> int:
                     f"element Hessians {v['element_hessians_ms']:.2f} (built only when the "
                     "Newton settings need them)"
                 )
-    _atomic_write(Path(a.out) / "bench_solvers.json", json.dumps(result, indent=2))
+    from jaxelastic.io import write_json  # here: the driver itself stays free of JAX
+
+    Path(a.out).mkdir(parents=True, exist_ok=True)
+    write_json(Path(a.out) / "bench_solvers.json", result, indent=2, nonfinite="string")
     print(f"\nwrote {Path(a.out) / 'bench_solvers.json'}")
     return 0
 

@@ -36,31 +36,21 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import io
-import json
 import os
 import sys
-import tempfile
 import time
 
 import numpy as np
+
+from jaxelastic.io import write_atomic, write_json
 
 E_TRUE, NU_TRUE = 1.0e6, 0.3
 LENGTH = 4.0
 T_BEND, T_STRETCH = 2.0e3, 5.0e4  # [Pa]
 
 
-def _write_atomic(path: str, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), prefix=".tmp-")
-    with os.fdopen(fd, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
-
-
 def _savefig(fig, path: str) -> None:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    _write_atomic(path, buf.getvalue())
+    write_atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
 
 
 class Beam:
@@ -400,22 +390,6 @@ def study_two_material(n, log, noise_seeds: int = 0) -> dict:
 # --------------------------------------------------------------------------------------
 
 
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
-
-
 def _tables(rep: dict) -> str:
     L = []
     if "recovery" in rep:
@@ -597,10 +571,7 @@ def main(argv=None) -> int:
     print(_tables(rep))
     os.makedirs(args.out, exist_ok=True)
     rep["figures"] = _plots(rep, args.out)
-    _write_atomic(
-        os.path.join(args.out, "report_fit.json"),
-        (json.dumps(_jsonable(rep), indent=1) + "\n").encode(),
-    )
+    write_json(os.path.join(args.out, "report_fit.json"), rep, indent=1, nonfinite="null")
     print(f"wrote {args.out}/report_fit.json ({rep['wall_time']:.0f} s)", file=sys.stderr)
     return 0
 

@@ -77,8 +77,8 @@ def _settings(**kw):
 
 @functools.cache
 def _step_fn():
-    """``step(base, state, bc, h, solver, method)`` jitted; ``h`` is static (one compile
-    per time step size: ``je.dynamics.step`` checks ``h > 0`` in Python)."""
+    """``step(base, state, bc, h, solver, method)`` jitted with a *traced* ``h`` (one
+    compile for every time step size)."""
     import jax
 
     from jaxelastic import dynamics as D
@@ -86,7 +86,7 @@ def _step_fn():
     def step(base, state, bc, h, solver, method):
         return D.step(base, state, bc, D.Integrator(h, method), solver=solver)
 
-    return jax.jit(step, static_argnames=("h", "solver", "method"))
+    return jax.jit(step, static_argnames=("solver", "method"))
 
 
 @dataclasses.dataclass
@@ -142,9 +142,9 @@ def _run_dynamic(base, x0, bc, h, method, n_steps, settings, energy_base=None) -
 
     step = _step_fn()
     rest = D.init_state(base.mesh.points)
-    h = float(h)
+    h = jnp.asarray(h)  # traced: one compilation for every time step size
     compile_s = _compile_time(
-        _warm_key(base, (method, h), settings),
+        _warm_key(base, method, settings),
         lambda: jax.block_until_ready(step(base, rest, bc, h, settings, method)),
     )
     state = D.init_state(jnp.asarray(x0))
@@ -700,7 +700,7 @@ def run(
     out = Path(out)
     rc.write_json(out / "stability.json", result)
     rc.write_csv(out / "stability.csv", rows)
-    rc.atomic_write(out / "stability.md", markdown_table(rows))
+    rc.write_text(out / "stability.md", markdown_table(rows))
     if plots and shapes:
         result["figures"] = [plot_shapes(shapes, out / "stability_shapes.png", rows)]
     if verbose:

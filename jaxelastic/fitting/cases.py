@@ -150,7 +150,7 @@ class TrajectoryCase(Case):
     bc: Dirichlet
     observed: Any
     frames: Any
-    integ: Integrator = dataclasses.field(metadata=dict(static=True), default=None)
+    integ: Integrator | None = dataclasses.field(metadata=dict(static=True), default=None)
     n_steps: int = dataclasses.field(metadata=dict(static=True), default=0)
     nodes: Any = None
     weight: float = 1.0
@@ -187,6 +187,7 @@ class TrajectoryCase(Case):
 
     def evaluate(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):
         """``(loss, CaseAux)`` at ψ parameters ``params`` (pure, jit-able, differentiable)."""
+        assert self.integ is not None  # checked in __post_init__
         _, traj = rollout(
             self.pot.replace(params=params),
             self.state0,

@@ -85,11 +85,12 @@ def material_parametrization(
     if dim is None:
         if mesh is None:
             raise ValueError("material_parametrization needs a mesh or dim")
-        dim = mesh.dim
+        dim = int(mesh.dim)
+    dim = int(dim)
     lo, hi = (float(b) for b in nu_bounds)
     if lo < -1.0 or hi > 0.5:
         raise ValueError(f"nu_bounds must lie within (-1, 0.5), got {nu_bounds!r}")
-    LameOf(int(dim), plane)(Material(1.0, 0.0))  # validates dim and plane
+    LameOf(dim, plane)(Material(1.0, 0.0))  # validates dim and plane
     transforms = Material(
         E=Positive() if "E" in fields else Fixed(),
         nu=Bounded(lo, hi) if "nu" in fields else Fixed(),
@@ -114,5 +115,5 @@ def material_parametrization(
         mesh=mesh,
         regularization=regularization,
         reg_kind=reg_kind,
-        to_psi=LameOf(int(dim), plane),
+        to_psi=LameOf(dim, plane),
     )

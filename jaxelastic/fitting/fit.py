@@ -276,9 +276,19 @@ def fit(
         GradientError: a forward solve at the initial guess failed.
     """
     t_start = time.perf_counter()
-    kw = dict(transforms=transforms, regions=regions, fields=fields, plane=plane, mesh=mesh)
-    reg = dict(regularization=regularization, reg_kind=reg_kind)
-    obj = make_objective(cases, init, solver=solver, adjoint=adjoint, **kw, **reg)
+    obj = make_objective(
+        cases,
+        init,
+        transforms=transforms,
+        regions=regions,
+        fields=fields,
+        plane=plane,
+        mesh=mesh,
+        regularization=regularization,
+        reg_kind=reg_kind,
+        solver=solver,
+        adjoint=adjoint,
+    )
     line_search = optimizer == "lbfgs"
     if isinstance(optimizer, str):
         optimizer = _named_optimizer(optimizer, float(learning_rate))

@@ -76,7 +76,8 @@ def nested_nodes(fine_points, coarse_points, tol: float = 1e-9) -> np.ndarray:
     Raises:
         ValueError: a coarse node has no fine node at its position (not a nested mesh).
     """
-    from scipy.spatial import cKDTree
+    # cKDTree comes from the compiled scipy.spatial._ckdtree, which has no stubs
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
     fine, coarse = np.asarray(fine_points), np.asarray(coarse_points)
     d, idx = cKDTree(fine).query(coarse)

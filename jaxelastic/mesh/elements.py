@@ -254,9 +254,9 @@ class Element:
         return np.asarray(p), np.asarray(w)
 
 
-_TRI_FACETS = ((0, 1), (1, 2), (2, 0))
+_TRI_FACETS: tuple[tuple[int, ...], ...] = ((0, 1), (1, 2), (2, 0))
 # outward for positive orientation det[x1-x0, x2-x0, x3-x0] > 0
-_TET_FACETS = ((0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2))
+_TET_FACETS: tuple[tuple[int, ...], ...] = ((0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2))
 
 
 def _p2_facets(dim: int) -> tuple:

@@ -40,7 +40,7 @@ from ..potential import Potential
 from ..solvers import CG, Newton, bind_solver
 from .callables import CallableSpecError, import_callable, n_positional
 from .load import Scene, load_scene
-from .schema import RotateDisplacement, Selector, SolverSpec, axis_index
+from .schema import DynamicIntegrator, RotateDisplacement, Selector, SolverSpec, axis_index
 from .where import WhereError, where_mask
 
 __all__ = ["Built", "build", "newton_of", "lift_file_mesh", "select_nodes", "select_facets"]
@@ -99,12 +99,16 @@ def _make_mesh(scene: Scene) -> tuple[Mesh, MeshData | None]:
             return lift_file_mesh(read_mesh(m.file), m.order, m.formulation)
         except (MeshError, ValueError) as e:
             raise scene.error(f"[mesh].file: {e}") from None
-    kw = dict(order=m.order or 1, formulation=m.formulation)
+    kw: dict[str, Any] = dict(order=m.order or 1, formulation=m.formulation)
+    n = m.n
     try:
         if m.generator == "cook":
-            return cook_membrane(m.n, **kw), None
+            assert isinstance(n, int)  # MeshSpec: one integer for "cook"
+            return cook_membrane(n, **kw), None
         fn = box if m.generator == "box" else rectangle
-        return fn(*m.n, size=tuple(m.size), origin=tuple(m.origin), **kw), None
+        # MeshSpec: n per axis, size and origin filled in for "box" / "rectangle"
+        assert isinstance(n, tuple) and m.size is not None and m.origin is not None
+        return fn(*n, size=tuple(m.size), origin=tuple(m.origin), **kw), None
     except (MeshError, ValueError) as e:
         raise scene.error(f"[mesh]: {e}") from None
 
@@ -252,6 +256,7 @@ def select_nodes(
         except (WhereError, ValueError, IndexError, TypeError) as e:
             raise scene.error(f"{key}.where: cannot evaluate {sel.where!r}: {e}") from None
     else:
+        assert sel.group is not None  # a Selector has exactly one of plane, box, where, group
         idx = _group_nodes(scene, key, sel.group, mesh, md)
     idx = np.asarray(idx, dtype=np.int64)
     if idx.size == 0:
@@ -391,7 +396,9 @@ def newton_of(s: SolverSpec) -> Newton:
 
 
 def _initial_velocity(scene: Scene, X: np.ndarray, bc: Dirichlet, dtype) -> jax.Array:
-    iv = scene.spec.integrator.initial_velocity
+    integ = scene.spec.integrator
+    assert isinstance(integ, DynamicIntegrator)  # called for dynamic scenes only
+    iv = integ.initial_velocity
     key = "[integrator].initial_velocity"
     if iv is None:
         v0 = np.zeros_like(X)
@@ -411,7 +418,8 @@ def _initial_velocity(scene: Scene, X: np.ndarray, bc: Dirichlet, dtype) -> jax.
 
 
 def _tip_node(mesh: Mesh, bc: Dirichlet) -> int:
-    from scipy.spatial import cKDTree
+    # cKDTree comes from the compiled scipy.spatial._ckdtree, which has no stubs
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
     X = np.asarray(mesh.points)
     fixed = np.flatnonzero(np.asarray(bc.mask).any(axis=1))
@@ -467,6 +475,7 @@ def build(scene) -> Built:
     bc = bc_fn(1.0 if scene.static else 0.0)
     if not scene.static:
         integ = scene.spec.integrator
+        assert isinstance(integ, DynamicIntegrator)  # not scene.static
         mass = loads.lumped_mass(mesh, scene.spec.material.density)
         pot = pot.replace(mass=jnp.asarray(mass, dtype))
         integrator = dynamics.Integrator(

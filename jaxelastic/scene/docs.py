@@ -149,7 +149,7 @@ def _type(p: dict) -> str:
     if "const" in p or "enum" in p:
         vals = p.get("enum", [p.get("const")])
         return "integer" if all(isinstance(v, int) for v in vals) else "string"
-    t = p.get("type", "any")
+    t: str = p.get("type", "any")
     if t == "array":
         return f"array of {_type(p['items'])}" if "items" in p else "array"
     if t == "object":

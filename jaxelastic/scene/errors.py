@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
+from typing import Any
 
 from pydantic import ValidationError
 from pydantic_core import PydanticCustomError
@@ -94,7 +95,7 @@ def _choices(expected: str) -> str:
     return ", ".join(i.replace("'~", "'") for i in items)
 
 
-def describe(err: dict) -> str:
+def describe(err: Mapping[str, Any]) -> str:
     """One pydantic error (an item of ``ValidationError.errors()``) as a scene message."""
     kind, ctx, x = err["type"], err.get("ctx") or {}, err.get("input")
     at = key_path(err["loc"])

@@ -29,7 +29,7 @@ from .errors import SceneError
 from .load import Scene, load_scene
 from .outputs import log, prepare_out, save_npz, save_png, write_summary
 from .run import static_solve
-from .schema import FitCase
+from .schema import FitCase, FitSpec
 from .where import where_mask
 
 __all__ = ["run_fit", "region_labels", "read_observed", "highlights"]
@@ -116,16 +116,23 @@ def read_observed(scene: Scene, key: str, path: str, n_nodes: int, dim: int):
 # ----------------------------------------------------------------------------------------
 
 
+def _fit_spec(scene: Scene) -> FitSpec:
+    """The scene's ``[fit]`` table; SceneError when it has none."""
+    if scene.spec.fit is None:
+        raise SceneError(f"scene {scene.label!r} has no [fit] section")
+    return scene.spec.fit
+
+
 def _case_scenes(scene: Scene) -> list[Scene]:
     base = scene.to_dict()
     base.pop("fit")
-    cases = [{}] + [dict(c.set) for c in scene.spec.fit.case]
+    cases = [{}] + [dict(c.set) for c in _fit_spec(scene).case]
     return [load_scene(base, overrides=c, base_dir=scene.base_dir) for c in cases]
 
 
 def _regions(scene: Scene, mesh, summary: dict):
     """``(labels (n_cells,) or None, n_regions)``; refuses an empty region."""
-    regions = scene.spec.fit.regions
+    regions = _fit_spec(scene).regions
     if not regions:
         return None, 1
     n_reg = len(regions) + 1
@@ -151,7 +158,9 @@ def _with_truth(bt: Built, truth: dict, labels, n_reg: int) -> Built:
 
 def _synthetic_targets(scene: Scene, scenes, mesh, labels, n_reg: int, progress: bool):
     """Observed positions ``(n_nodes, dim)`` per case, solved at ``[fit].target``."""
-    t = scene.spec.fit.target
+    cfg = _fit_spec(scene)
+    t = cfg.target
+    assert t is not None  # called for a synthetic target
     truth = dict(E=t.E, nu=t.nu)
     fmt = lambda x: ", ".join(f"{a:.6g}" for a in np.atleast_1d(x))
     r = t.refine
@@ -167,7 +176,7 @@ def _synthetic_targets(scene: Scene, scenes, mesh, labels, n_reg: int, progress:
                 s, overrides={"mesh.n": [k * r for k in n] if isinstance(n, tuple) else n * r}
             )
         bt = build(s)
-        lab = labels if (labels is None or r == 1) else region_labels(bt.mesh, s.spec.fit.regions)
+        lab = labels if (labels is None or r == 1) else region_labels(bt.mesh, cfg.regions)
         x, _, _ = static_solve(_with_truth(bt, truth, lab, n_reg), what="target solve")
         idx = (
             np.arange(mesh.n_nodes) if r == 1 else fitting.nested_nodes(bt.mesh.points, mesh.points)
@@ -179,10 +188,13 @@ def _synthetic_targets(scene: Scene, scenes, mesh, labels, n_reg: int, progress:
 def _file_targets(scene: Scene, mesh):
     """Observed positions (NaN where unobserved) per case from ``observed`` files, the nodes
     observed in every case, and the file paths."""
-    cfg = scene.spec.fit
+    cfg = _fit_spec(scene)
     files = [cfg.observed] + [c.observed for c in cfg.case]
     keys = ["[fit].observed"] + [f"[fit.case][{i}].observed" for i in range(len(cfg.case))]
-    sources = [os.path.join(scene.base_dir, f) for f in files]
+    sources = []
+    for f in files:
+        assert f is not None  # FitSpec: every case has a file when there is no target
+        sources.append(os.path.join(scene.base_dir, f))
     observed, avail = [], None
     for key, path in zip(keys, sources, strict=True):
         pos, nodes = read_observed(scene, key, path, mesh.n_nodes, mesh.dim)
@@ -195,7 +207,7 @@ def _file_targets(scene: Scene, mesh):
 
 def _load_cases(scene: Scene, builts: list[Built], observed, markers: np.ndarray):
     """The :class:`~jaxelastic.fitting.LoadCase` s (noise added) and the observed arrays."""
-    cfg = scene.spec.fit
+    cfg = _fit_spec(scene)
     mesh = builts[0].mesh
     X = np.asarray(mesh.points)
     cases, arrays = [], {}
@@ -212,7 +224,7 @@ def _load_cases(scene: Scene, builts: list[Built], observed, markers: np.ndarray
 
 
 def _fit(scene: Scene, cases, labels, n_reg: int, progress: bool) -> fitting.FitResult:
-    cfg, spec = scene.spec.fit, scene.spec
+    cfg, spec = _fit_spec(scene), scene.spec
     init = fitting.Material(E=cfg.initial.E, nu=cfg.initial.nu)
     if labels is not None:
         init = fitting.Material(_per_region(init.E, n_reg), _per_region(init.nu, n_reg))
@@ -286,9 +298,7 @@ def _figure(hist_loss, hist_p, fields, truth, title):
 
 def _prepare(scene: Scene, out_dir) -> str:
     """The output directory; refuses to overwrite the scene or an observation file."""
-    if scene.spec.fit is None:
-        raise SceneError(f"scene {scene.label!r} has no [fit] section")
-    cfg = scene.spec.fit
+    cfg = _fit_spec(scene)
     obs = [os.path.join(scene.base_dir, c.observed) for c in (cfg, *cfg.case) if c.observed]
     out = prepare_out(out_dir, scene)
     for name in _OUTPUTS:
@@ -300,7 +310,7 @@ def _prepare(scene: Scene, out_dir) -> str:
 
 def _observe(scene: Scene, builts, labels, n_reg, progress, summary):
     """Observations, marker nodes and load cases; fills the summary's case entries."""
-    cfg, mesh = scene.spec.fit, builts[0].mesh
+    cfg, mesh = _fit_spec(scene), builts[0].mesh
     t0 = time.perf_counter()
     if cfg.target is not None:
         scenes = [b.scene for b in builts]

@@ -11,6 +11,7 @@ import copy
 import dataclasses
 import functools
 import os
+import sys
 import types
 from collections.abc import Mapping
 from typing import Any
@@ -18,9 +19,9 @@ from typing import Any
 from .errors import SceneError
 from .schema import SceneSpec, validate
 
-try:
+if sys.version_info >= (3, 11):
     import tomllib
-except ModuleNotFoundError:  # Python < 3.11
+else:  # Python < 3.11
     import tomli as tomllib
 
 __all__ = ["Scene", "load_scene", "apply_overrides", "shipped_scenes", "SCENE_DIR"]
@@ -29,7 +30,7 @@ SCENE_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data")
 """Directory of the shipped scene files."""
 
 
-def freeze(obj):
+def freeze(obj: Any) -> Any:
     """Nested mappings and sequences as read-only mappings and tuples."""
     if isinstance(obj, Mapping):
         return types.MappingProxyType({k: freeze(v) for k, v in obj.items()})
@@ -38,7 +39,7 @@ def freeze(obj):
     return obj
 
 
-def thaw(obj):
+def thaw(obj: Any) -> Any:
     """Nested mappings and sequences as plain dicts and lists (a deep copy)."""
     if isinstance(obj, Mapping):
         return {k: thaw(v) for k, v in obj.items()}

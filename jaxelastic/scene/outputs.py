@@ -25,6 +25,7 @@ from ..loads import Dirichlet
 from .build import Built
 from .errors import SceneError
 from .load import Scene
+from .schema import DynamicIntegrator
 
 __all__ = [
     "OUTPUT_PATTERNS",
@@ -118,7 +119,9 @@ def save_npz(path: str, **arrays) -> None:
 def write_summary(path: str, summary: dict) -> dict:
     """Write ``summary.json`` and return the summary as plain JSON values."""
     write_json(path, summary)
-    return to_jsonable(summary)
+    out = to_jsonable(summary)
+    assert isinstance(out, dict)  # a dict converts to a dict
+    return out
 
 
 # ----------------------------------------------------------------------------------------
@@ -223,6 +226,7 @@ def dynamic_figures(built: Built, out: str, per_step: dict, tip_u, x, x_static) 
     name, X, tip = built.scene.name, np.asarray(built.x0), built.tip
     t = per_step["t"]
     cfg = built.scene.spec.integrator
+    assert isinstance(cfg, DynamicIntegrator)  # figures of a dynamic scene
     shapes = {"rest": built.x0, f"dynamic, t = {t[-1]:.3g} s": x}
     if x_static is not None:
         shapes["static"] = x_static

@@ -37,6 +37,7 @@ from .outputs import (
     write_static_vtu,
     write_summary,
 )
+from .schema import DynamicIntegrator, StaticIntegrator
 
 __all__ = ["run_scene", "static_solve"]
 
@@ -61,8 +62,8 @@ def static_solve(
     Raises:
         SolveError: the load stepping stalled.
     """
-    spec = built.scene.spec
-    n = spec.integrator.load_steps if spec.static else 1
+    cfg = built.scene.spec.integrator
+    n = cfg.load_steps if isinstance(cfg, StaticIntegrator) else 1
     path = built.bc_fn if bc is None else (lambda s: bc)
     sol = solve_incremental(
         built.potential.replace(mass=None),
@@ -129,7 +130,9 @@ class _Monitor:
 
     def __init__(self, built: Built, writer: TimeSeriesWriter | None, n_steps: int):
         self.built, self.writer, self.n_steps = built, writer, n_steps
-        self.cfg = built.scene.spec.integrator
+        cfg = built.scene.spec.integrator
+        assert isinstance(cfg, DynamicIntegrator)  # the monitor of a dynamic scene
+        self.cfg = cfg
         self.every = built.scene.spec.output.every
         self.state = dynamics.init_state(built.x0, built.v0)
         self.records: list[dict] = []
@@ -139,6 +142,7 @@ class _Monitor:
         self.t_out = 0.0
 
     def write(self, t: float, state) -> None:
+        assert self.writer is not None  # called only when there is a writer
         t0 = time.perf_counter()
         self.writer.write(t, state.x, velocity=np.asarray(state.v))
         self.t_out += time.perf_counter() - t0
@@ -162,8 +166,9 @@ class _Monitor:
 
 def _simulate(built: Built, out: str, progress: bool, summary: dict):
     """Run the time steps; returns ``(monitor, failure or None)``."""
-    pot, integ = built.potential, built.integrator
-    n_steps = max(1, math.ceil(built.scene.spec.integrator.duration / integ.h - 1e-9))
+    pot, integ, cfg = built.potential, built.integrator, built.scene.spec.integrator
+    assert integ is not None and isinstance(cfg, DynamicIntegrator)  # a dynamic scene
+    n_steps = max(1, math.ceil(cfg.duration / integ.h - 1e-9))
     writer = None
     if built.scene.spec.output.vtu:
         writer = TimeSeriesWriter(out, "dynamic", built.mesh, built.psi, built.params)
@@ -284,7 +289,9 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
     per = _per_step(built, mon.records)
     _dynamic_summary(built, mon, per, summary)
     x_static = None
-    if built.scene.spec.integrator.compare_static and failure is None:
+    cfg = built.scene.spec.integrator
+    assert isinstance(cfg, DynamicIntegrator)  # a dynamic scene
+    if cfg.compare_static and failure is None:
         x_static = _compare_static(built, out, progress, mon, summary)
     if built.scene.spec.output.png and mon.n:
         t0 = time.perf_counter()

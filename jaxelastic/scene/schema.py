@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator, Mapping
-from typing import Annotated, Any, ClassVar, Literal, Union
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, Union
 
 from pydantic import (
     AfterValidator,
@@ -216,39 +216,45 @@ class Table(BaseModel):
 
 
 _Count = Annotated[Integer, Field(ge=1)]
-CellCounts = either("scalar", scalar=_Count, array=tuple[_Count, ...])
+# (each either(...) union below is spelled out as its plain union for the type checker,
+# which cannot evaluate the call; pydantic validates with the discriminated one)
+if TYPE_CHECKING:
+    CellCounts = _Count | tuple[_Count, ...]
+else:
+    CellCounts = either("scalar", scalar=_Count, array=tuple[_Count, ...])
 
 
 class MeshSpec(Table):
     """The mesh: a generator (``box``, ``rectangle``, ``cook``) or a mesh file."""
 
     generator: Literal["box", "rectangle", "cook"] | None = Field(
-        None,
+        default=None,
         description='"box" (3D tets), "rectangle" (2D triangles) or "cook" (Cook\'s '
         "membrane, 2D); exactly one of generator and file",
     )
     file: Str | None = Field(
-        None,
+        default=None,
         description="any meshio-readable mesh file (Gmsh .msh, .vtu, .xdmf, ...), relative "
         "to the scene file; its named groups can be selected with { group = ... }",
     )
     n: CellCounts | None = Field(
-        None,
+        default=None,
         description='cells per axis, one per dimension (generator "cook": one integer, default 16)',
     )
     size: tuple[Positive, ...] | None = Field(
-        None, description="box/rectangle extent per axis [m] (default: all 1)"
+        default=None, description="box/rectangle extent per axis [m] (default: all 1)"
     )
     origin: Vector | None = Field(
-        None, description="box/rectangle corner with the smallest coordinates [m] (default 0)"
+        default=None,
+        description="box/rectangle corner with the smallest coordinates [m] (default 0)",
     )
     order: Literal[1, 2] | None = Field(
-        None,
+        default=None,
         description="1 (P1, default for generators) or 2 (P2: tri6/tet10); a file keeps its "
         "own order unless given (order = 2 lifts a P1 file)",
     )
     formulation: Literal[FORMULATIONS] = Field(  # type: ignore[valid-type]
-        "standard",
+        default="standard",
         description='"standard", "fbar" (finite strain) or "bbar" (small strain, for '
         '"linear"): locking-free for nu -> 0.5; with order = 1 this is the composite '
         "element (tri3x4/tet4x8 on the P2 node set)",
@@ -337,17 +343,21 @@ class MaterialSpec(Table):
         description="a built-in psi (" + ", ".join(BUILTIN) + ') or "module:function" for '
         "your own psi(F, params), which receives params = Lame(mu, lam)"
     )
-    E: Positive | None = Field(None, description="Young's modulus [Pa] (with nu)")
+    E: Positive | None = Field(default=None, description="Young's modulus [Pa] (with nu)")
     nu: Annotated[Number, Field(gt=-1, lt=0.5)] | None = Field(
-        None, description="Poisson's ratio (with E)"
+        default=None, description="Poisson's ratio (with E)"
     )
-    mu: Positive | None = Field(None, description="shear modulus [Pa] (with lam, instead of E, nu)")
-    lam: Number | None = Field(None, description="first Lamé parameter [Pa] (with mu); lam > -mu")
+    mu: Positive | None = Field(
+        default=None, description="shear modulus [Pa] (with lam, instead of E, nu)"
+    )
+    lam: Number | None = Field(
+        default=None, description="first Lamé parameter [Pa] (with mu); lam > -mu"
+    )
     plane: Literal["strain", "stress"] | None = Field(
-        None, description='2D only, with E and nu: "strain" (default) or "stress"'
+        default=None, description='2D only, with E and nu: "strain" (default) or "stress"'
     )
     density: Positive | None = Field(
-        None, description="[kg/m^3]; required for dynamics and gravity"
+        default=None, description="[kg/m^3]; required for dynamics and gravity"
     )
 
     @model_validator(mode="after")
@@ -360,8 +370,9 @@ class MaterialSpec(Table):
         for k in pair:
             if getattr(self, k) is None:
                 raise fail(f"{{at}}.{k} is required (give {pair[0]} and {pair[1]} together)")
-        if has_mu and not self.lam > -self.mu:
-            raise fail(f"{{at}}.lam must be > -mu (a positive bulk modulus), got {self.lam!r}")
+        lam, mu = self.lam, self.mu
+        if has_mu and lam is not None and mu is not None and not lam > -mu:
+            raise fail(f"{{at}}.lam must be > -mu (a positive bulk modulus), got {lam!r}")
         if has_mu and self.plane is not None:
             raise fail("{at}.plane needs E and nu (mu and lam are used as given)")
         return self
@@ -378,7 +389,7 @@ class PlaneSelector(Table):
     axis: Axis = Field(description='0, 1, 2 or "x", "y", "z"')
     value: Number = Field(description="the plane's coordinate [m]")
     tol: Positive | None = Field(
-        None,
+        default=None,
         description="distance tolerance [m] (default: 1e-8 x the largest mesh extent, "
         "at least 1e-8)",
     )
@@ -404,11 +415,13 @@ class Selector(Table):
     """A set of nodes (facets: those whose nodes all match): exactly one of ``plane``,
     ``box``, ``group``, ``where``."""
 
-    plane: PlaneSelector | None = Field(None, description="{ axis = ..., value = ... }")
-    box: BoxSelector | None = Field(None, description="{ lo = [..], hi = [..] }")
-    group: Str | None = Field(None, description="a named group (physical tag) of a mesh file")
+    plane: PlaneSelector | None = Field(default=None, description="{ axis = ..., value = ... }")
+    box: BoxSelector | None = Field(default=None, description="{ lo = [..], hi = [..] }")
+    group: Str | None = Field(
+        default=None, description="a named group (physical tag) of a mesh file"
+    )
     where: WhereExpr | None = Field(
-        None,
+        default=None,
         description='a boolean expression of the rest positions, e.g. "x < 1e-9" or '
         '"(X[:, 0] > 1) & (abs(y) < 0.1)" (see the where-expression rules)',
     )
@@ -423,10 +436,12 @@ class Selector(Table):
 class Rotation(Table):
     """A rigid rotation of the selected nodes, ``u = scale (R (X - c) + c - X)``."""
 
-    axis: Axis = Field("z", description='rotation axis: 0, 1, 2 or "x", "y", "z" ("z" in 2D)')
+    axis: Axis = Field(
+        default="z", description='rotation axis: 0, 1, 2 or "x", "y", "z" ("z" in 2D)'
+    )
     angle_deg: Number = Field(description="rotation angle [degrees]")
-    center: Vector | None = Field(None, description="a point on the axis [m] (default 0)")
-    scale: Number = Field(1.0, description="factor applied to the displacement")
+    center: Vector | None = Field(default=None, description="a point on the axis [m] (default 0)")
+    scale: Number = Field(default=1.0, description="factor applied to the displacement")
 
 
 class RotateDisplacement(Table):
@@ -435,7 +450,10 @@ class RotateDisplacement(Table):
     rotate: Rotation = Field(description="the rotation")
 
 
-Displacement = either("array", array=Vector, table=RotateDisplacement, str=CallableName)
+if TYPE_CHECKING:
+    Displacement = Vector | RotateDisplacement | CallableName
+else:
+    Displacement = either("array", array=Vector, table=RotateDisplacement, str=CallableName)
 
 
 class DirichletSpec(Table):
@@ -443,15 +461,15 @@ class DirichletSpec(Table):
 
     nodes: Selector = Field(description="the constrained nodes")
     components: Annotated[tuple[Axis, ...], Field(min_length=1)] | None = Field(
-        None, description="the constrained components (default: all)"
+        default=None, description="the constrained components (default: all)"
     )
     displacement: Displacement | None = Field(
-        None,
+        default=None,
         description='[m]: a vector (default 0), { rotate = { ... } }, or "module:function" '
         "u(X) -> (m, dim) (in dynamics also u(X, t))",
     )
     ramp_time: Positive | None = Field(
-        None, description="dynamics: the displacement grows linearly until this time [s]"
+        default=None, description="dynamics: the displacement grows linearly until this time [s]"
     )
 
     @model_validator(mode="after")
@@ -464,6 +482,8 @@ class DirichletSpec(Table):
 
 class _Load(Table):
     _value_key: ClassVar[str] = ""
+    if TYPE_CHECKING:  # a field of every subclass
+        total_force: Vector | None
 
     @model_validator(mode="after")
     def _one_value(self):
@@ -478,8 +498,8 @@ class TractionSpec(_Load):
 
     _value_key: ClassVar[str] = "traction"
     facets: Selector = Field(description="the loaded boundary facets (same selectors as nodes)")
-    traction: Vector | None = Field(None, description="[Pa] per reference area")
-    total_force: Vector | None = Field(None, description="[N] spread over the facets' area")
+    traction: Vector | None = Field(default=None, description="[Pa] per reference area")
+    total_force: Vector | None = Field(default=None, description="[N] spread over the facets' area")
 
 
 class PointLoadSpec(_Load):
@@ -487,8 +507,8 @@ class PointLoadSpec(_Load):
 
     _value_key: ClassVar[str] = "force"
     nodes: Selector = Field(description="the loaded nodes")
-    force: Vector | None = Field(None, description="[N] on each node")
-    total_force: Vector | None = Field(None, description="[N] shared equally by the nodes")
+    force: Vector | None = Field(default=None, description="[N] on each node")
+    total_force: Vector | None = Field(default=None, description="[N] shared equally by the nodes")
 
 
 class GravitySpec(Table):
@@ -505,38 +525,42 @@ class GravitySpec(Table):
 class SolverSpec(Table):
     """Newton's method and its linear solver (``jaxelastic.Newton``)."""
 
-    max_steps: Annotated[Integer, Field(ge=1)] = Field(50, description="Newton iteration limit")
-    rtol: NonNegative = Field(1e-8, description="relative tolerance on the force residual")
-    atol: NonNegative = Field(0.0, description="absolute tolerance on the force residual [N]")
+    max_steps: Annotated[Integer, Field(ge=1)] = Field(
+        default=50, description="Newton iteration limit"
+    )
+    rtol: NonNegative = Field(default=1e-8, description="relative tolerance on the force residual")
+    atol: NonNegative = Field(
+        default=0.0, description="absolute tolerance on the force residual [N]"
+    )
     xtol: NonNegative = Field(
-        1e-12,
+        default=1e-12,
         description="also converged when a Newton step moves no node by more than xtol x "
         "the rest bounding-box diagonal",
     )
     hessian: Literal["hvp", "element", "projected"] = Field(
-        "element",
+        default="element",
         description='"element" (exact element Hessians, assembled), "hvp" (matrix-free '
         'Hessian-vector products) or "projected" (PSD-projected element Hessians)',
     )
     linear: Literal["auto", "cg", "direct", "amg"] = Field(
-        "auto",
+        default="auto",
         description='"auto" (sparse Cholesky up to 10k dofs in 3D / 100k in 2D, else '
         'AMG-preconditioned CG), "direct", "amg", or "cg" (matrix-free PCG inside jit)',
     )
     preconditioner: Literal["block_jacobi", "jacobi", "none"] = Field(
-        "block_jacobi", description='preconditioner of linear = "cg"'
+        default="block_jacobi", description='preconditioner of linear = "cg"'
     )
     cg_max_iter: Annotated[Integer, Field(ge=1)] = Field(
-        2000, description='CG iteration limit per Newton step (linear = "cg")'
+        default=2000, description='CG iteration limit per Newton step (linear = "cg")'
     )
     ls_max: Annotated[Integer, Field(ge=1)] = Field(
-        40, description="maximum step halvings in the line search"
+        default=40, description="maximum step halvings in the line search"
     )
     armijo: Annotated[Number, Field(ge=0, lt=1)] = Field(
-        1e-4, description="sufficient-decrease constant of the line search"
+        default=1e-4, description="sufficient-decrease constant of the line search"
     )
     require_positive_J: Bool = Field(
-        False, description="also reject trial steps where an element has J <= 0"
+        default=False, description="also reject trial steps where an element has J <= 0"
     )
 
 
@@ -544,13 +568,16 @@ class StaticIntegrator(Table):
     """A static solve (the default)."""
 
     _unknown_suffix: ClassVar[str] = " for type = 'static'"
-    type: Literal["static"] = Field("static", description='"static" or "dynamic"')
+    type: Literal["static"] = Field(default="static", description='"static" or "dynamic"')
     load_steps: Annotated[Integer, Field(ge=1)] = Field(
-        1, description="apply the loads in this many equal increments (cut back on failure)"
+        default=1, description="apply the loads in this many equal increments (cut back on failure)"
     )
 
 
-InitialVelocity = either("array", array=Vector, str=CallableName)
+if TYPE_CHECKING:
+    InitialVelocity = Vector | CallableName
+else:
+    InitialVelocity = either("array", array=Vector, str=CallableName)
 
 
 class DynamicIntegrator(Table):
@@ -560,24 +587,29 @@ class DynamicIntegrator(Table):
     h: Positive = Field(description="time step [s]")
     duration: Positive = Field(description="simulated time [s] (the maximum when settle = true)")
     method: Literal["backward_euler", "bdf2"] = Field(
-        "backward_euler", description='"backward_euler" or "bdf2" (second order)'
+        default="backward_euler", description='"backward_euler" or "bdf2" (second order)'
     )
-    alpha: NonNegative = Field(0.0, description="mass-proportional Rayleigh damping [1/s]")
-    beta: NonNegative = Field(0.0, description="stiffness-proportional Rayleigh damping [s]")
+    alpha: NonNegative = Field(default=0.0, description="mass-proportional Rayleigh damping [1/s]")
+    beta: NonNegative = Field(
+        default=0.0, description="stiffness-proportional Rayleigh damping [s]"
+    )
     settle: Bool = Field(
-        False, description="stop once kinetic < settle_tol x elastic energy for settle_steps steps"
+        default=False,
+        description="stop once kinetic < settle_tol x elastic energy for settle_steps steps",
     )
-    settle_tol: Positive = Field(1e-8, description="kinetic / elastic energy ratio of settle")
+    settle_tol: Positive = Field(
+        default=1e-8, description="kinetic / elastic energy ratio of settle"
+    )
     settle_steps: Annotated[Integer, Field(ge=1)] = Field(
-        5, description="consecutive steps below settle_tol"
+        default=5, description="consecutive steps below settle_tol"
     )
     initial_velocity: InitialVelocity | None = Field(
-        None,
+        default=None,
         description='[m/s]: a vector for all nodes, or "module:function" v(X) -> (m, dim) '
         "(default 0; zero on Dirichlet dofs)",
     )
     compare_static: Bool = Field(
-        False,
+        default=False,
         description="also solve the static problem of the final load and report the difference",
     )
 
@@ -605,12 +637,12 @@ class OutputSpec(Table):
     """What is written into the output directory besides ``summary.json``."""
 
     every: Annotated[Integer, Field(ge=1)] = Field(
-        1, description="write a VTU every k time steps (and the first and last)"
+        default=1, description="write a VTU every k time steps (and the first and last)"
     )
-    vtu: Bool = Field(True, description="ParaView time series (.vtu files + .pvd)")
-    png: Bool = Field(True, description="pictures: final shape, tip displacement, energies")
+    vtu: Bool = Field(default=True, description="ParaView time series (.vtu files + .pvd)")
+    png: Bool = Field(default=True, description="pictures: final shape, tip displacement, energies")
     probes: tuple[Vector, ...] = Field(
-        (), description="points [m]: report the displacement at the node nearest each"
+        default=(), description="points [m]: report the displacement at the node nearest each"
     )
 
 
@@ -620,8 +652,12 @@ class OutputSpec(Table):
 
 _E = Annotated[Number, Field(gt=0)]
 _NU = Annotated[Number, Field(gt=-1, lt=0.5)]
-EValues = either("scalar", scalar=_E, array=Annotated[tuple[_E, ...], Field(min_length=1)])
-NuValues = either("scalar", scalar=_NU, array=Annotated[tuple[_NU, ...], Field(min_length=1)])
+if TYPE_CHECKING:
+    EValues = _E | tuple[_E, ...]
+    NuValues = _NU | tuple[_NU, ...]
+else:
+    EValues = either("scalar", scalar=_E, array=Annotated[tuple[_E, ...], Field(min_length=1)])
+    NuValues = either("scalar", scalar=_NU, array=Annotated[tuple[_NU, ...], Field(min_length=1)])
 
 
 def _n_values(x) -> int:
@@ -634,7 +670,7 @@ class FitTarget(Table):
     E: EValues = Field(description="true Young's modulus [Pa]: one value, or one per region")
     nu: NuValues = Field(description="true Poisson's ratio: one value, or one per region")
     refine: Annotated[Integer, Field(ge=1)] = Field(
-        1,
+        default=1,
         description="solve the target on a mesh with refine x the cells per axis, observed at "
         "the fitting mesh's nodes (generator meshes only)",
     )
@@ -643,20 +679,22 @@ class FitTarget(Table):
 class FitInitial(Table):
     """The initial guess (default: ``[material].E`` and ``.nu``)."""
 
-    E: EValues | None = Field(None, description="[Pa]: one value, or one per region")
-    nu: NuValues | None = Field(None, description="one value, or one per region")
+    E: EValues | None = Field(default=None, description="[Pa]: one value, or one per region")
+    nu: NuValues | None = Field(default=None, description="one value, or one per region")
 
 
 class FitCase(Table):
     """Another load case: scene overrides, a weight and (file targets) its observations."""
 
     set: dict[str, Any] = Field(
-        {},
+        default={},
         description='dotted-key scene overrides, e.g. { "traction.0.traction" = [2e4, 0, 0] } '
         "(not mesh, integrator or fit)",
     )
-    observed: Str | None = Field(None, description="observation file of this case (file targets)")
-    weight: Positive = Field(1.0, description="weight of this case in the loss")
+    observed: Str | None = Field(
+        default=None, description="observation file of this case (file targets)"
+    )
+    weight: Positive = Field(default=1.0, description="weight of this case in the loss")
 
     @field_validator("set")
     @classmethod
@@ -671,38 +709,42 @@ class FitSpec(Table):
     """Material identification (``jaxelastic fit``): fit E and nu to observed shapes."""
 
     target: FitTarget | None = Field(
-        None, description="synthetic observations solved at { E, nu[, refine] }"
+        default=None, description="synthetic observations solved at { E, nu[, refine] }"
     )
     observed: Str | None = Field(
-        None,
+        default=None,
         description="observed positions of the scene's case: .npy (n_nodes, dim), .npz with "
         '"positions" (n_obs, dim) and optional "nodes" (n_obs,), or .csv rows "node, x, y[, z]"',
     )
-    initial: FitInitial = Field(FitInitial(), description="initial guess { E, nu }")
+    initial: FitInitial = Field(default=FitInitial(), description="initial guess { E, nu }")
     fields: Annotated[tuple[Literal["E", "nu"], ...], Field(min_length=1)] = Field(
-        ("E", "nu"), description="the fitted parameters (the others stay at initial)"
+        default=("E", "nu"), description="the fitted parameters (the others stay at initial)"
     )
     regions: tuple[WhereExpr, ...] = Field(
-        (),
+        default=(),
         description="piecewise-constant E, nu: region i = cells whose centroid satisfies the "
         "i-th expression (first match), the last region the rest",
     )
     markers: Annotated[Number, Field(gt=0, le=1)] = Field(
-        1.0,
+        default=1.0,
         description="fraction of the nodes observed (random, among nodes not fully clamped)",
     )
     noise: NonNegative = Field(
-        0.0, description="relative Gaussian noise (sigma = noise x RMS displacement)"
+        default=0.0, description="relative Gaussian noise (sigma = noise x RMS displacement)"
     )
-    seed: Annotated[Integer, Field(ge=0)] = Field(0, description="seed of markers and noise")
-    optimizer: Literal["lbfgs", "adam"] = Field("lbfgs", description='"lbfgs" or "adam"')
-    learning_rate: Positive = Field(0.05, description='step size of "adam"')
-    max_iter: Annotated[Integer, Field(ge=0)] = Field(100, description="optimiser iterations")
+    seed: Annotated[Integer, Field(ge=0)] = Field(
+        default=0, description="seed of markers and noise"
+    )
+    optimizer: Literal["lbfgs", "adam"] = Field(default="lbfgs", description='"lbfgs" or "adam"')
+    learning_rate: Positive = Field(default=0.05, description='step size of "adam"')
+    max_iter: Annotated[Integer, Field(ge=0)] = Field(
+        default=100, description="optimiser iterations"
+    )
     gtol: Positive = Field(
-        1e-10, description="stop when the gradient norm (unconstrained variables) is below"
+        default=1e-10, description="stop when the gradient norm (unconstrained variables) is below"
     )
     case: Annotated[list[FitCase], BeforeValidator(_array_of_tables)] = Field(
-        [], description="more load cases ([[fit.case]])"
+        default=[], description="more load cases ([[fit.case]])"
     )
 
     @model_validator(mode="after")
@@ -738,24 +780,28 @@ class FitSpec(Table):
 class SceneSpec(Table):
     """A jaxelastic scene file."""
 
-    name: Str = Field("scene", description="label (output directory name, plot titles)")
-    description: Str = Field("", description="one line shown by `jaxelastic scenes`")
+    name: Str = Field(default="scene", description="label (output directory name, plot titles)")
+    description: Str = Field(default="", description="one line shown by `jaxelastic scenes`")
     mesh: MeshSpec = Field(description="the mesh")
     material: MaterialSpec = Field(description="the material")
     dirichlet: Annotated[list[DirichletSpec], BeforeValidator(_array_of_tables)] = Field(
-        [], description="prescribed displacements ([[dirichlet]])"
+        default=[], description="prescribed displacements ([[dirichlet]])"
     )
     traction: Annotated[list[TractionSpec], BeforeValidator(_array_of_tables)] = Field(
-        [], description="surface loads ([[traction]])"
+        default=[], description="surface loads ([[traction]])"
     )
     point_load: Annotated[list[PointLoadSpec], BeforeValidator(_array_of_tables)] = Field(
-        [], description="nodal forces ([[point_load]])"
+        default=[], description="nodal forces ([[point_load]])"
     )
-    gravity: GravitySpec | None = Field(None, description="gravity")
-    solver: SolverSpec = Field(SolverSpec(), description="the Newton solver")
-    integrator: Integrator = Field(StaticIntegrator(), description="static (default) or dynamic")
-    output: OutputSpec = Field(OutputSpec(), description="outputs")
-    fit: FitSpec | None = Field(None, description="material identification (jaxelastic fit)")
+    gravity: GravitySpec | None = Field(default=None, description="gravity")
+    solver: SolverSpec = Field(default=SolverSpec(), description="the Newton solver")
+    integrator: Integrator = Field(
+        default=StaticIntegrator(), description="static (default) or dynamic"
+    )
+    output: OutputSpec = Field(default=OutputSpec(), description="outputs")
+    fit: FitSpec | None = Field(
+        default=None, description="material identification (jaxelastic fit)"
+    )
 
     @classmethod
     def _unknown_key(cls, key: str, valid: list) -> str:
@@ -783,7 +829,8 @@ class SceneSpec(Table):
     @property
     def known_dim(self) -> int | None:
         """The spatial dimension when a generator fixes it, else None (a mesh file)."""
-        return GENERATOR_DIM.get(self.mesh.generator)
+        generator = self.mesh.generator
+        return None if generator is None else GENERATOR_DIM.get(generator)
 
     @model_validator(mode="after")
     def _consistent(self):

@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
+from typing import cast
 
 import jax
 import jax.numpy as jnp
@@ -179,7 +180,8 @@ def _attach_fn(solver: Newton, adj: ImplicitAdjoint):
         _, vjp = jax.vjp(g_free, pot)
         (pot_bar,) = vjp(-lam)
         vals_bar = jnp.where(mask, xbar - system.H(lam), 0.0)
-        bc_bar = Dirichlet(mask=_float0_like(mask), values=vals_bar)
+        # the cotangent of the bool mask is a float0 numpy array, which JAX takes for it
+        bc_bar = Dirichlet(mask=cast(jax.Array, _float0_like(mask)), values=vals_bar)
         return (
             _nan_unless(ok, pot_bar),
             _nan_unless(ok, bc_bar),

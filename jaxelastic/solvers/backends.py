@@ -24,6 +24,7 @@ import contextlib
 import os
 import sys
 import time
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -36,13 +37,15 @@ __all__ = ["DirectSolver", "AMGSolver", "make_backend", "BACKEND_KINDS"]
 BACKEND_KINDS = ("direct", "amg")
 
 
-def _as_csr(K) -> sp.csr_matrix:
+def _as_csr(K) -> tuple[sp.csr_matrix, int]:
+    """``K`` as CSR and its size n (checked square)."""
     if not sp.issparse(K):
         raise TypeError(f"expected a scipy.sparse matrix, got {type(K).__name__}")
     K = K.tocsr()
-    if K.shape[0] != K.shape[1]:
+    n, m = K.shape
+    if n != m:
         raise ValueError(f"matrix must be square, got {K.shape}")
-    return K
+    return K, int(n)
 
 
 @contextlib.contextmanager
@@ -125,8 +128,7 @@ class DirectSolver:
         Sets ``positive_definite`` (bool) and ``method`` (``"cholesky"`` / ``"lu"``).
         """
         t0 = time.perf_counter()
-        K = _as_csr(K)
-        self.n = K.shape[0]
+        K, self.n = _as_csr(K)
         self._solve = None
         self.positive_definite = None
         if self.backend == "cholespy":
@@ -138,7 +140,8 @@ class DirectSolver:
         self.setup_time = time.perf_counter() - t0
 
     def _factor_cholespy(self, K):
-        from cholespy import CholeskySolverD, MatrixType
+        # names made at import by the compiled cholespy._cholespy_core (no stubs)
+        from cholespy import CholeskySolverD, MatrixType  # pyright: ignore[reportAttributeAccessIssue]
 
         n = K.shape[0]
         indptr = np.ascontiguousarray(K.indptr, dtype=np.int32)
@@ -253,7 +256,7 @@ class AMGSolver:
         self.cycle = cycle
         self.block = block
         self.pattern = pattern
-        self.sa_options = dict(
+        self.sa_options: dict[str, Any] = dict(
             strength=("symmetric", {"theta": 0.0}),
             smooth=("jacobi", {"omega": 4.0 / 3.0}),
             presmoother=("block_gauss_seidel", {"sweep": "symmetric"}),
@@ -280,9 +283,9 @@ class AMGSolver:
         import pyamg
 
         t0 = time.perf_counter()
-        K = _as_csr(K)
-        if K.shape[0] != self.B.shape[0]:
-            raise ValueError(f"matrix has {K.shape[0]} rows, the modes {self.B.shape[0]}")
+        K, n = _as_csr(K)
+        if n != self.B.shape[0]:
+            raise ValueError(f"matrix has {n} rows, the modes {self.B.shape[0]}")
         self._M = None
         A = self._amg_matrix(K)
         if self.ml is None or self._updates_since_build >= self.reuse:
@@ -302,13 +305,15 @@ class AMGSolver:
         from pyamg.multilevel import coarse_grid_solver
         from pyamg.relaxation.smoothing import change_smoothers
 
-        levels = self.ml.levels
+        ml = self.ml
+        assert ml is not None  # called by update between rebuilds only
+        levels = ml.levels
         levels[0].A = A
         for lo, hi in zip(levels[:-1], levels[1:], strict=True):
             Ac = lo.R @ lo.A @ lo.P
             hi.A = Ac.tobsr(blocksize=hi.A.blocksize) if hi.A.format == "bsr" else Ac.tocsr()
-        change_smoothers(self.ml, self.sa_options["presmoother"], self.sa_options["postsmoother"])
-        self.ml.coarse_solver = coarse_grid_solver(self.sa_options["coarse_solver"])
+        change_smoothers(ml, self.sa_options["presmoother"], self.sa_options["postsmoother"])
+        ml.coarse_solver = coarse_grid_solver(self.sa_options["coarse_solver"])
 
     @property
     def ready(self) -> bool:

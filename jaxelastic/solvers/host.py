@@ -27,6 +27,7 @@ from __future__ import annotations
 import hashlib
 import threading
 import time
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -41,6 +42,23 @@ __all__ = ["HostLinearSolver", "SUCCESS", "NONFINITE", "NOT_POSITIVE_DEFINITE"]
 SUCCESS = Status.SUCCESS  # factorised (positive definite) / AMG hierarchy built
 NONFINITE = Status.NONFINITE  # non-finite Hessian or mass entries: nothing factorised
 NOT_POSITIVE_DEFINITE = Status.NOT_POSITIVE_DEFINITE  # the assembled matrix is not SPD
+
+
+def content_key(cells, points, fixed, kind: str, opts: dict) -> tuple:
+    """Hashable identity of a host solver: kind, sizes, a SHA-1 of connectivity, rest
+    positions and Dirichlet mask, and the options."""
+    fixed = np.asarray(fixed, dtype=bool).reshape(-1)
+    h = hashlib.sha1()
+    for a in (np.ascontiguousarray(cells), np.ascontiguousarray(points), fixed):
+        h.update(a.tobytes())
+    n, d = np.shape(points)
+    return (kind, n, d, h.hexdigest(), repr(sorted(opts.items())))
+
+
+SHARED_CAPACITY = 8
+"""How many distinct host solvers :meth:`HostLinearSolver.shared` keeps alive."""
+_SHARED: dict = {}  # content key -> instance, least recently used first
+_SHARED_LOCK = threading.Lock()
 
 
 class HostLinearSolver:
@@ -73,6 +91,7 @@ class HostLinearSolver:
         n, d = points.shape
         if fixed.shape != (n, d):
             raise ValueError(f"fixed mask must have shape {(n, d)}, got {fixed.shape}")
+        self._key = content_key(cells, points, fixed, kind, opts)
         self.kind = kind
         self.shape = (n, d)
         self.fixed = fixed.reshape(-1)
@@ -80,10 +99,6 @@ class HostLinearSolver:
         self.backend = make_backend(
             kind, points=points, fixed=self.fixed, pattern=self.pattern, **opts
         )
-        h = hashlib.sha1()
-        for a in (np.ascontiguousarray(cells), np.ascontiguousarray(points), self.fixed):
-            h.update(a.tobytes())
-        self._key = (kind, n, d, h.hexdigest(), repr(sorted(opts.items())))
         self._ready = False
         self.calls = 0
         self.factorizations = 0
@@ -97,6 +112,27 @@ class HostLinearSolver:
     def for_problem(cls, mesh, bc, kind: str = "direct", **opts) -> HostLinearSolver:
         """Build from a :class:`~jaxelastic.mesh.Mesh` and :class:`~jaxelastic.loads.Dirichlet`."""
         return cls(mesh.cells, mesh.points, bc.mask, kind, **opts)
+
+    @classmethod
+    def shared(cls, mesh, bc, kind: str = "direct", **opts) -> HostLinearSolver:
+        """The one instance for this (mesh, mask, kind, options), built on first use.
+
+        Equal instances are interchangeable as static jit arguments, so a compiled solve
+        keeps calling the instance it was traced with; sharing one instance per content
+        makes its factorisation (and counters) the one every equal solver sees, and skips
+        the pattern analysis on repeated solves. The last :data:`SHARED_CAPACITY` are kept.
+        """
+        cells, points = np.asarray(mesh.cells), np.asarray(mesh.points)
+        fixed = np.asarray(bc.mask, dtype=bool)
+        key = content_key(cells, points, fixed, kind, opts)
+        with _SHARED_LOCK:
+            inst = _SHARED.pop(key, None)
+            if inst is None:
+                inst = cls(cells, points, fixed, kind, **opts)
+            _SHARED[key] = inst  # most recently used last
+            while len(_SHARED) > SHARED_CAPACITY:
+                _SHARED.pop(next(iter(_SHARED)))
+            return inst
 
     @property
     def exact(self) -> bool:
@@ -119,7 +155,7 @@ class HostLinearSolver:
             diag[self.fixed] = 0.0
         return self.pattern.assemble(Ke, symmetrize=True, diag=diag)
 
-    def factor(self, Ke, mass_diag, token=None) -> np.ndarray:
+    def factor(self, Ke, mass_diag, token=None) -> np.int32:
         """Assemble and factorise (direct) or build / refresh the hierarchy (AMG).
 
         Args:
@@ -150,7 +186,7 @@ class HostLinearSolver:
         self._ready = self.backend.ready
         if isinstance(self.backend, DirectSolver):
             pd = bool(self.backend.positive_definite)
-            info = dict(method=self.backend.method, positive_definite=pd)
+            info: dict[str, Any] = dict(method=self.backend.method, positive_definite=pd)
             info["setup_time"] = self.backend.setup_time
         else:
             pd = bool(np.all(K.diagonal()[~self.fixed] > 0))
@@ -176,7 +212,7 @@ class HostLinearSolver:
             self.calls += 1
             return self._apply(r)
 
-    def factor_solve(self, Ke, mass_diag, r, token=None) -> tuple[np.ndarray, np.ndarray]:
+    def factor_solve(self, Ke, mass_diag, r, token=None) -> tuple[np.ndarray, np.int32]:
         """:meth:`factor` then :meth:`apply` under one lock: ``(K⁻¹ r, status)``.
 
         Use this (not two callbacks) where the result must come from *this* matrix: two

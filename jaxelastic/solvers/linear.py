@@ -22,11 +22,13 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Self
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
+from jax.core import Tracer
 
 from ..energy import project_psd
 from ..potential import Potential, mass_diagonal, node_hessian_blocks
@@ -251,6 +253,34 @@ def _host_factor_solve(backend: HostLinearSolver, Ke, md, r, token):
     return _no_vmap_callback(backend.factor_solve, out, Ke, md, r, token)
 
 
+def _host_factor_if(backend: HostLinearSolver, Ke, md, need):
+    """Factorise ``Ke`` on the host if ``need``; returns the status token (0 if skipped).
+    Under vmap with only ``need`` batched it factorises once, if any element needs it."""
+    out = jax.ShapeDtypeStruct((), jnp.int32)
+
+    def host(Ke, md, need):
+        return backend.factor(Ke, md) if bool(need) else np.int32(0)
+
+    @jax.custom_batching.custom_vmap
+    def call(Ke, md, need):
+        return jax.pure_callback(host, out, Ke, md, need)
+
+    @call.def_vmap
+    def _rule(axis_size, in_batched, Ke, md, need):
+        if in_batched[0] or in_batched[1]:
+            raise ValueError(_VMAP_MESSAGE)
+        need = jnp.any(need) if in_batched[2] else need
+        return call(Ke, md, need), False
+
+    return call(Ke, md, need)
+
+
+_VMAP_MESSAGE = (
+    "host linear solvers (Direct, AMG) cannot run under jax.vmap: one host factorisation "
+    "is shared by the whole batch; use linear='cg' (je.CG()) to vmap over scenes"
+)
+
+
 def _no_vmap_callback(fn, out, *args):
     @jax.custom_batching.custom_vmap
     def call(*a):
@@ -260,11 +290,7 @@ def _no_vmap_callback(fn, out, *args):
     def _rule(axis_size, in_batched, *a):
         if not any(jax.tree_util.tree_leaves(in_batched)):
             return call(*a), False
-        raise ValueError(
-            "host linear solvers (Direct, AMG) cannot run under jax.vmap: one host "
-            "factorisation is shared by the whole batch; use linear='cg' (je.CG()) to vmap "
-            "over scenes"
-        )
+        raise ValueError(_VMAP_MESSAGE)
 
     return call(*args)
 
@@ -286,9 +312,9 @@ class _Host:
     def _options(self) -> dict:
         return {}
 
-    def bind(self, mesh, bc) -> _Host:
+    def bind(self, mesh, bc) -> Self:
         """This solver with its host back end built for ``mesh`` and ``bc.mask``."""
-        host = HostLinearSolver.for_problem(mesh, bc, self.kind, **self._options())
+        host = HostLinearSolver.shared(mesh, bc, self.kind, **self._options())
         return dataclasses.replace(self, backend=host)
 
     def _require(self) -> HostLinearSolver:
@@ -341,18 +367,18 @@ class _Host:
         first = cg(system.A, b, M0, tol=tol, max_iter=min(self.reuse_iter, max_iter))
         y0 = jnp.where(jnp.all(jnp.isfinite(first.x)), first.x, 0.0)
 
-        def refactor(_):
-            token = _host_factor(backend, system.Ke, _masked_diag(system), first.status)
+        # refactorise K(x*) only if the reused preconditioner stalled; no lax.cond here: under
+        # jacfwd/jacrev (vmap over right-hand sides) a cond would batch K(x*) too, while
+        # _host_factor_if factorises once if any column needs it
+        need = first.status != Status.SUCCESS
+        token = _host_factor_if(backend, system.Ke, _masked_diag(system), need)
 
-            def M1(r):
-                return free * _host_apply(backend, r, token)
+        def M1(r):
+            return free * _host_apply(backend, r, token)
 
-            res = cg(system.A, b, M1, tol=tol, max_iter=max_iter, x0=y0)
-            its = res.stats["iterations"] + first.stats["iterations"]
-            return res._replace(stats=dict(res.stats, iterations=its))
-
-        done = first.status == Status.SUCCESS
-        return lax.cond(done, lambda _: first._replace(x=y0), refactor, None)
+        res = cg(system.A, b, M1, tol=tol, max_iter=max_iter, x0=y0)  # 0 its if done
+        its = res.stats["iterations"] + first.stats["iterations"]
+        return res._replace(stats=dict(res.stats, iterations=its))
 
     reuse_iter = 25
 
@@ -410,10 +436,10 @@ LinearSolver = CG | Direct | AMG
 
 
 def _is_traced(tree) -> bool:
-    return any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(tree))
+    return any(isinstance(a, Tracer) for a in jax.tree_util.tree_leaves(tree))
 
 
-def bind_linear(linear, mesh, bc) -> LinearSolver:
+def bind_linear(linear: str | LinearSolver | None, mesh, bc) -> LinearSolver:
     """Resolve a linear-solver choice for one scene (outside jit).
 
     Args:
@@ -437,7 +463,8 @@ def bind_linear(linear, mesh, bc) -> LinearSolver:
                 return CG()
             small = mesh.n_dofs <= AUTO_DIRECT_MAX_DOFS.get(mesh.dim, 10_000)
             linear = "direct" if small else "amg"
-        linear = {"cg": CG, "direct": Direct, "amg": AMG}[linear]()
+        by_name: dict[str, type[LinearSolver]] = {"cg": CG, "direct": Direct, "amg": AMG}
+        linear = by_name[linear]()
     if isinstance(linear, CG):
         return linear
     if isinstance(linear, _Host):

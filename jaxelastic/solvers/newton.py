@@ -156,9 +156,11 @@ def _system(s: Newton, pot: Potential, x, free) -> NewtonSystem:
         def H(v):
             return pot_mod.hessian_vp(pot, x, v)
     else:
+        Ke_el = Ke
+        assert Ke_el is not None  # need_Ke holds for every hessian but "hvp"
 
         def H(v):
-            return pot_mod.element_hessian_vp(pot, Ke, v)
+            return pot_mod.element_hessian_vp(pot, Ke_el, v)
 
     return NewtonSystem(pot=pot, x=x, free=free, Ke=Ke, H=H, A=masked(H), operator=operator)
 

@@ -14,6 +14,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+from jax.core import Tracer
 
 from ..loads import Dirichlet
 from ..potential import Potential
@@ -27,7 +28,7 @@ __all__ = ["solve", "bind_solver", "is_traced"]
 
 def is_traced(*trees) -> bool:
     """Whether any leaf of ``trees`` is a JAX tracer (we are inside jit/vmap/grad)."""
-    return any(isinstance(a, jax.core.Tracer) for t in trees for a in jax.tree_util.tree_leaves(t))
+    return any(isinstance(a, Tracer) for t in trees for a in jax.tree_util.tree_leaves(t))
 
 
 def bind_solver(solver: Newton, mesh, bc: Dirichlet) -> Newton:
