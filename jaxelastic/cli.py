@@ -16,7 +16,14 @@ persistent compilation cache in ``$JAXELASTIC_CACHE_DIR`` (default
 it off), which cuts the compile time of a repeated run.
 
 Exit status: 0 success, 1 a solve failed (the summary is still written), 2 bad usage or
-an invalid scene.
+an invalid scene (a mesh too large for the memory included), 130 interrupted.
+
+SIGINT (Ctrl-C) and SIGTERM during ``run`` and ``fit`` stop the run at the next time step
+or load increment (the optimiser of a fit: at once): the VTU of the last completed state, a
+``.pvd`` listing only the files written and ``summary.json`` with ``"interrupted": true``
+are written, temporaries removed, and one line says what was completed (exit status 130).
+A second signal stops at once, with the same outputs. Every file is written atomically, so
+even SIGKILL leaves only complete files.
 """
 
 from __future__ import annotations
@@ -289,6 +296,33 @@ def _fit(scene, out: str, args, t0: float) -> int:
     return 0
 
 
+def _interrupted(e: KeyboardInterrupt) -> int:
+    """One line for an interrupted run; exit status 130."""
+    name = getattr(e, "signame", "SIGINT")
+    detail, out = getattr(e, "detail", ""), getattr(e, "out", None)
+    where = f" {detail}" if detail else ""
+    if out is None:
+        print(f"jaxelastic: interrupted by {name}{where}; nothing was written", file=sys.stderr)
+    else:
+        print(
+            f"jaxelastic: interrupted by {name}{where}; partial results in {out} "
+            '(summary.json: "interrupted": true)',
+            file=sys.stderr,
+        )
+    return 130
+
+
+def _run_interruptible(args) -> int:
+    """``run``/``fit`` with SIGINT/SIGTERM stopping at the next step boundary."""
+    try:
+        from .scene.interrupt import handle_signals
+
+        with handle_signals():
+            return _run(args)
+    except KeyboardInterrupt as e:  # scene.interrupt.Interrupted, or Ctrl-C while starting
+        return _interrupted(e)
+
+
 def main(argv=None) -> int:
     """Entry point of the ``jaxelastic`` command; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -303,7 +337,7 @@ def main(argv=None) -> int:
         return _list_scenes()
     if args.command == "schema":
         return _print_schema()
-    return _run(args)
+    return _run_interruptible(args)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -30,7 +30,8 @@ float.
 
 Cases outside a model's domain are skipped (no row): neo-Hookean and the rubber/tissue
 families need J > 0 and a finite ψ (they are +∞ otherwise: Gent beyond its locking
-stretch, the HGO exponential past overflow at J = 1e-3), and ``stable_neo_hookean_log`` is defined in 3D only.
+stretch, the HGO exponential past overflow at J = 1e-3), and ``stable_neo_hookean_log``
+is defined in 3D only.
 
 Run it as ``python -m jaxelastic crosscheck`` (or :func:`main`). The checks need float64:
 :func:`main` enables it; callers of :func:`crosscheck` must enable it themselves with

@@ -23,14 +23,27 @@ of contracting P with ∇N; they are still cell-local, so element Hessians are e
 solver works unchanged. ``"bbar"`` is the small-strain analogue (B-bar,
 :func:`~jaxelastic.kinematics.b_bar`) for small-strain materials. Nothing of either is traced
 for ``"standard"`` meshes.
+
+Input checks: the public functions check, before anything is traced and at no cost to a
+jitted computation (static shapes only, under jit/vmap/grad too): ``x`` (and ``v``) must
+have the mesh's shape ``(n_nodes, dim)``, and ψ must return a scalar float for one
+unbatched ``(d, d)`` F (:func:`check_psi`, evaluated abstractly once per ψ, dimension,
+dtype and parameter structure, then cached). Outside any transformation (no argument is a
+JAX tracer) they also refuse NaN/inf in ``x`` and the float leaves of ``params``
+(:func:`check_finite`); inside ``jax.jit`` (or under ``vmap``/``grad``) nothing is checked
+by value and non-finite input gives NaN results (the solvers report it in their status).
 """
 
 from __future__ import annotations
 
+import math
+import weakref
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.core import Tracer
 
 from .kinematics import b_bar, deformation_gradients, f_bar
 
@@ -46,6 +59,10 @@ __all__ = [
     "project_psd",
     "assemble",
     "cell_params_axes",
+    "check_positions",
+    "check_psi",
+    "check_finite",
+    "psi_name",
 ]
 
 Psi = Callable[..., jax.Array]
@@ -77,6 +94,231 @@ def cell_params_axes(params, n_cells: int):
     return jax.tree_util.tree_map(axis, params)
 
 
+# ----------------------------------------------------------------------------- input checks
+
+
+def psi_name(psi) -> str:
+    """A readable name of ψ for error messages: its ``__qualname__`` (that of the wrapped
+    function for ``functools.partial``), else its ``repr``."""
+    func = getattr(psi, "func", None)  # functools.partial
+    if func is not None and callable(func) and hasattr(psi, "args"):
+        return f"functools.partial({psi_name(func)}, ...)"
+    name = getattr(psi, "__qualname__", None) or getattr(psi, "__name__", None)
+    return str(name) if name else repr(psi)
+
+
+def check_positions(x, mesh, *, name: str = "x", where: str = "je.energy") -> None:
+    """Raise unless ``x`` has the shape ``(n_nodes, dim)`` of ``mesh.points``.
+
+    Static shapes only: free under jit, and under vmap it checks the per-example shape.
+
+    Args:
+        x: the array to check (positions, or a direction such as ``v`` of :func:`hvp`).
+        mesh: the :class:`~jaxelastic.mesh.Mesh` it belongs to.
+        name, where: the argument's and the calling function's names, for the message.
+
+    Raises:
+        TypeError: ``mesh`` is not a mesh (e.g. arguments swapped).
+        ValueError: the message names the argument, the expected and the given shape.
+    """
+    pts = getattr(mesh, "points", None)
+    if pts is None or not hasattr(pts, "shape") or not hasattr(mesh, "cells"):
+        raise TypeError(
+            f"{where}: mesh must be a je.Mesh (e.g. je.rectangle(...), je.read_mesh(path).mesh),"
+            f" got {type(mesh).__name__}; the signature is {where}(psi, x, mesh, params)"
+        )
+    shape, want = tuple(jnp.shape(x)), tuple(pts.shape)
+    if shape != want:
+        dim = want[1] if len(want) == 2 else "?"
+        raise ValueError(
+            f"{where}: {name} must have shape (n_nodes, dim) = {want} like mesh.points "
+            f"(a {dim}D mesh of {want[0]} nodes), got {shape}"
+        )
+
+
+# ψ -> set of (dim, dtype, params structure) keys already checked
+_PSI_CHECKED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+_NUMBERS = (bool, int, float, complex)
+
+
+def _param_key(params, n_cells: int):
+    """``(treedef, leaves, per_cell, key)`` of ``params``: ``per_cell[i]`` says leaf i has a
+    leading ``n_cells`` axis; ``key`` is a hashable summary of the structure ψ sees (None if a
+    leaf is neither an array nor a Python number: nothing can be checked)."""
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    per_cell, key = [], []
+    for leaf in leaves:
+        if isinstance(leaf, _NUMBERS):
+            per_cell.append(False)
+            key.append(type(leaf))
+            continue
+        shape, dtype = getattr(leaf, "shape", None), getattr(leaf, "dtype", None)
+        if shape is None or dtype is None:
+            return treedef, leaves, per_cell, None
+        shape = tuple(shape)
+        if shape and shape[0] != n_cells:
+            cell_params_axes(params, n_cells)  # raises the message naming the shape
+        per_cell.append(bool(shape))
+        key.append((shape, dtype, bool(getattr(leaf, "weak_type", False))))
+    return treedef, leaves, per_cell, (treedef, tuple(key))
+
+
+def _param_spec(treedef, leaves, per_cell):
+    """Parameters as ψ sees them for one cell, as ShapeDtypeStructs (numbers kept)."""
+    spec = [
+        leaf
+        if isinstance(leaf, _NUMBERS)
+        else jax.ShapeDtypeStruct(
+            tuple(leaf.shape)[1:] if pc else tuple(leaf.shape),
+            leaf.dtype,
+            weak_type=bool(getattr(leaf, "weak_type", False)),
+        )
+        for leaf, pc in zip(leaves, per_cell, strict=True)
+    ]
+    return jax.tree_util.tree_unflatten(treedef, spec)
+
+
+def _describe_return(out, raw) -> str | None:
+    """What ψ returned, when it is not a scalar float (else None)."""
+    if isinstance(raw, bool) or isinstance(raw, int):
+        return f"the Python {type(raw).__name__} {raw!r}"
+    if not isinstance(out, jax.ShapeDtypeStruct):
+        return f"a {type(raw).__name__}" + (f" {raw!r}" if raw is None else "")
+    if out.shape != () or not jnp.issubdtype(out.dtype, jnp.floating):
+        return f"an array of shape {out.shape} and dtype {out.dtype}"
+    return None
+
+
+def check_psi(
+    psi, dim: int, dtype, params, n_cells: int, *, where: str = "je.energy", own_errors=True
+) -> None:
+    """Raise unless ``psi(F, params)`` returns a scalar float for one ``(dim, dim)`` F.
+
+    Evaluated abstractly (``jax.eval_shape`` at F = I with one cell's parameters), so it
+    works under jit/vmap/grad too; the result is cached per ψ object, ``dim``, ``dtype`` and
+    parameter structure, so repeated calls cost a dictionary lookup. Errors raised by ψ
+    itself propagate unchanged (``own_errors=True``) or are ignored (``own_errors=False``,
+    e.g. for a potential built with placeholder parameters: they surface when it is used).
+
+    Args:
+        psi: the strain-energy density ``psi(F, params)``.
+        dim: 2 or 3.
+        dtype: the float dtype of F (the mesh's).
+        params: the parameter pytree as passed to the energy (shared or per-cell leaves).
+        n_cells: number of cells (to recognise per-cell leaves).
+        where: the calling function's name, for the message.
+
+    Raises:
+        TypeError: ψ is not callable, or returns anything but a scalar float (the message
+            names ψ by its ``__qualname__``, what it returned and what is required).
+        ValueError: a parameter leaf is neither a scalar nor a per-cell field.
+    """
+    if not callable(psi):
+        raise TypeError(f"{where}: psi must be a function psi(F, params), got {psi!r}")
+    treedef, leaves, per_cell, key = _param_key(params, n_cells)
+    if key is None:
+        return
+    key = (int(dim), jnp.dtype(dtype), key)
+    try:
+        done = _PSI_CHECKED.get(psi)
+    except TypeError:  # unhashable callable: check every time
+        done = None
+    if done is not None and key in done:
+        return
+    spec = _param_spec(treedef, leaves, per_cell)
+    raw = []
+
+    def at_identity(p):
+        out = psi(jnp.eye(dim, dtype=dtype), p)
+        raw.append(out)
+        return out
+
+    try:
+        out = jax.eval_shape(at_identity, spec)
+    except Exception:
+        if own_errors:
+            raise
+        return
+    what = _describe_return(out, raw[0] if raw else None)
+    if what is not None:
+        raise TypeError(
+            f"{where}: ψ {psi_name(psi)!r} returned {what} at F = I ({dim}×{dim}); a "
+            f"strain-energy density must return a scalar float for one unbatched F of shape "
+            f"({dim}, {dim}) (reduce with jnp.sum, return floats: 0.0 not 0)"
+        )
+    try:
+        _PSI_CHECKED.setdefault(psi, set()).add(key)
+    except TypeError:
+        pass  # not weak-referenceable or unhashable: nothing is cached
+
+
+def _first_bad(leaf) -> str:
+    """Where the first NaN/inf of a concrete array sits (for the message)."""
+    a = np.asarray(leaf)
+    bad = ~np.isfinite(a)
+    n = int(bad.sum())
+    if a.ndim == 0:
+        return f"is {a.item()!r}"
+    idx = np.unravel_index(int(np.flatnonzero(bad.ravel())[0]), a.shape)
+    at = f"node {idx[0]}" if a.ndim == 2 else f"index {tuple(int(i) for i in idx)}"
+    return f"has {n} NaN/inf value(s) of {a.size}, the first at {at} ({a[idx]!r})"
+
+
+def _all_finite(a: jax.Array) -> bool:
+    """``isfinite(a).all()`` of a concrete array: on the host for CPU arrays (a zero-copy
+    view, ~5 µs), one reduction on the device otherwise (no copy of ``a``)."""
+    if all(d.platform == "cpu" for d in a.devices()) and a.is_fully_addressable:
+        return bool(np.isfinite(np.asarray(a)).all())
+    return bool(jnp.isfinite(a).all())
+
+
+def check_finite(where: str, **trees) -> None:
+    """Outside any JAX transformation, raise if a float leaf of ``trees`` holds NaN/inf.
+
+    Skipped entirely (free) when any leaf is a JAX tracer, i.e. under jit/vmap/grad, where
+    NaN propagates to the results instead. One reduction per float array otherwise.
+
+    Args:
+        where: the calling function's name, for the message.
+        trees: name → array or pytree (e.g. ``x=x, params=params``).
+
+    Raises:
+        ValueError: the message names the argument (and the leaf path of a pytree).
+    """
+    named = []
+    for name, tree in trees.items():
+        for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+            if isinstance(leaf, Tracer):
+                return
+            named.append((name + jax.tree_util.keystr(path), leaf))
+    for name, leaf in named:
+        if isinstance(leaf, float):
+            ok = math.isfinite(leaf)
+        elif isinstance(leaf, (np.ndarray, np.generic)):
+            ok = not np.issubdtype(leaf.dtype, np.inexact) or bool(np.isfinite(leaf).all())
+        elif isinstance(leaf, jax.Array):
+            ok = not jnp.issubdtype(leaf.dtype, jnp.inexact) or _all_finite(leaf)
+        else:
+            continue
+        if not ok:
+            raise ValueError(
+                f"{where}: {name} {_first_bad(leaf)}; refusing non-finite input (inside "
+                "jax.jit nothing is checked and the result is NaN)"
+            )
+
+
+def _check_call(where: str, psi, x, mesh, params, **more) -> None:
+    """The checks of every public ``(psi, x, mesh, params)`` function."""
+    check_positions(x, mesh, where=where)
+    for name, v in more.items():
+        check_positions(v, mesh, name=name, where=where)
+    check_psi(psi, mesh.points.shape[1], mesh.points.dtype, params, mesh.n_cells, where=where)
+    if not isinstance(mesh.points, Tracer):  # a traced mesh: inside a transformation
+        check_finite(where, x=x, params=params, **more)
+
+
 def _per_cell(fn, params, n_cells):
     """vmap ``fn(cell_data..., params)`` over cells, broadcasting shared parameters."""
     return jax.vmap(fn, in_axes=(0, 0, 0, cell_params_axes(params, n_cells)))
@@ -84,7 +326,26 @@ def _per_cell(fn, params, n_cells):
 
 def energy_densities(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     """ψ at every quadrature point, ``(n_cells, n_q)`` [energy / rest measure] (of F̄
-    under the ``"fbar"`` formulation)."""
+    under the ``"fbar"`` formulation).
+
+    Args:
+        psi: ``psi(F, params) -> scalar`` for one unbatched ``(d, d)`` F.
+        x: ``(n_nodes, d)`` current positions [length].
+        mesh: the rest :class:`~jaxelastic.mesh.Mesh`.
+        params: material parameter pytree (shared scalars or per-cell leaves).
+
+    Raises (here and in :func:`energy`, :func:`forces`, :func:`hvp`,
+    :func:`element_forces`, :func:`element_hessians`; all checks happen before tracing):
+        TypeError: ``mesh`` is not a mesh, or ψ does not return a scalar float.
+        ValueError: ``x`` (or ``v``) is not ``(n_nodes, dim)``, a parameter leaf is neither
+            a scalar nor per-cell, or, outside any transformation only, ``x``/``params``
+            hold NaN/inf. Inside ``jax.jit`` non-finite input is not checked: it gives NaN.
+    """
+    _check_call("je.energy_densities", psi, x, mesh, params)
+    return _energy_densities(psi, x, mesh, params)
+
+
+def _energy_densities(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     F = deformation_gradients(x, mesh)
     ax = cell_params_axes(params, mesh.n_cells)
     per_q = jax.vmap(psi, in_axes=(0, None))
@@ -92,8 +353,12 @@ def energy_densities(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
 
 
 def energy(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
-    """Total elastic energy ``Σ_c Σ_q w_cq ψ(F_cq)`` [energy]."""
-    return jnp.sum(mesh.weights * energy_densities(psi, x, mesh, params))
+    """Total elastic energy ``Σ_c Σ_q w_cq ψ(F_cq)`` [energy], a scalar.
+
+    Args: as :func:`energy_densities` (``x``: ``(n_nodes, d)`` positions [length]).
+    """
+    _check_call("je.energy", psi, x, mesh, params)
+    return jnp.sum(mesh.weights * _energy_densities(psi, x, mesh, params))
 
 
 def _cell_grad(xe, dN):
@@ -166,7 +431,13 @@ def element_forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     """Per-element energy gradients ``∂E_c/∂x_a = Σ_q w P·∇N_a``, ``(n_cells, k, d)``.
 
     (Element *forces* are the negatives; this is the quantity that gets assembled.)
+    Args as :func:`energy_densities`.
     """
+    _check_call("je.element_forces", psi, x, mesh, params)
+    return _element_forces(psi, x, mesh, params)
+
+
+def _element_forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     xe = x[mesh.cells]
     fe = element_gradient_kernel(psi, _is_fbar(mesh))
     return _per_cell(fe, params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)
@@ -196,8 +467,12 @@ def assemble(mesh, per_element: jax.Array) -> jax.Array:
 
 
 def forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
-    """Nodal elastic forces ``f = −∂E/∂x``, ``(n_nodes, d)`` [force]."""
-    return -assemble(mesh, element_forces(psi, x, mesh, params))
+    """Nodal elastic forces ``f = −∂E/∂x``, ``(n_nodes, d)`` [force].
+
+    Args: as :func:`energy_densities` (``x``: ``(n_nodes, d)`` positions [length]).
+    """
+    _check_call("je.forces", psi, x, mesh, params)
+    return -assemble(mesh, _element_forces(psi, x, mesh, params))
 
 
 def _element_hvp(psi, fbar: str | None = None):
@@ -224,7 +499,9 @@ def hvp(psi: Psi, x: jax.Array, v: jax.Array, mesh, params) -> jax.Array:
     """Hessian-vector product ``(∂²E/∂x²)·v`` by forward-over-reverse, ``(n_nodes, d)``.
 
     Never forms a Hessian: per element, ``dP = jvp(∂ψ/∂F)(F; dF)`` with ``dF = Σ v_a ⊗ ∇N_a``.
+    ``v``: ``(n_nodes, d)`` direction [length]; other args as :func:`energy_densities`.
     """
+    _check_call("je.hvp", psi, x, mesh, params, v=v)
     xe, ve = x[mesh.cells], v[mesh.cells]
     fn = jax.vmap(
         _element_hvp(psi, _is_fbar(mesh)),
@@ -271,7 +548,10 @@ def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = Fa
     Args:
         project: clamp each element Hessian to positive semidefinite (see
             :func:`project_psd`), for Newton on indefinite configurations.
+
+    Other args as :func:`energy_densities`.
     """
+    _check_call("je.element_hessians", psi, x, mesh, params)
     xe = x[mesh.cells]
     ke = _element_hessian(psi, _is_fbar(mesh))
     K = _per_cell(ke, params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)

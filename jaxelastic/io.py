@@ -31,7 +31,9 @@ import functools
 import json
 import math
 import os
-import tempfile
+import re
+import secrets
+import warnings
 import xml.etree.ElementTree as ET
 from typing import Any, cast
 
@@ -39,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .energy import cell_params_axes, first_piola
+from .energy import cell_params_axes, check_positions, check_psi, first_piola, psi_name
 from .kinematics import deformation_gradients, det, green_strain
 from .mesh import Mesh, MeshError, boundary_facets, from_arrays
 
@@ -109,6 +111,8 @@ def _read_raw(path: str, file_format: str | None):
             )
     else:
         formats = [file_format]
+    if os.path.getsize(path) == 0:
+        raise MeshIOError(f"cannot read mesh {path!r}: the file is empty (0 bytes)")
     readers = getattr(getattr(meshio, "_helpers", None), "reader_map", {})
     errors = []
     for fmt in formats:
@@ -121,7 +125,19 @@ def _read_raw(path: str, file_format: str | None):
         except Exception as e:  # noqa: BLE001 — any parser failure is reported with the path
             why = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
             errors.append(f"meshio could not parse it as {fmt} ({why})")
+    if _declares_no_points(path):  # meshio fails on some empty files (VTU, legacy VTK)
+        raise MeshIOError(f"{path}: the mesh is empty (0 points, 0 cells)")
     raise MeshIOError(f"cannot read mesh {path!r}: " + "; ".join(errors))
+
+
+def _declares_no_points(path: str) -> bool:
+    """Whether the header of a VTK file (XML or legacy) declares 0 points."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 16).decode("latin-1")
+    xml = re.findall(r"<Piece\b[^>]*\bNumberOfPoints\s*=\s*[\"'](\d+)", head)
+    legacy = re.findall(r"^\s*POINTS\s+(\d+)", head, flags=re.MULTILINE)
+    counts = xml or legacy
+    return bool(counts) and all(int(c) == 0 for c in counts)
 
 
 def _tagged_groups(raw):
@@ -203,7 +219,8 @@ def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> M
         stored with 3 coordinates and constant z make a 2D mesh.
 
     Raises:
-        MeshIOError: missing/unreadable file, unknown extension, no or unsupported volume
+        MeshIOError: missing/unreadable file, unknown extension, an empty mesh (the
+            message says "empty"), no or unsupported volume
             cells (quad, hex, mixed types), a triangle mesh that is not planar,
             or invalid geometry (the :class:`~jaxelastic.mesh.MeshError` message, prefixed
             with the path).
@@ -211,7 +228,13 @@ def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> M
     path = os.path.abspath(os.fspath(path))
     raw = _read_raw(path, file_format)
     blocks = raw.cells
-    dims = {b.type: b.dim for b in blocks}
+    n_cells = sum(len(b.data) for b in blocks)
+    if len(raw.points) == 0 or n_cells == 0:
+        raise MeshIOError(
+            f"{path}: the mesh is empty ({len(raw.points)} points, {n_cells} cells); a mesh "
+            "needs triangle (2D) or tetrahedron (3D) cells"
+        )
+    dims = {b.type: b.dim for b in blocks if len(b.data)}
     vol_dim = max(dims.values(), default=-1)
     vol_types = sorted(t for t, d in dims.items() if d == vol_dim)
     if vol_dim < 2:
@@ -223,7 +246,7 @@ def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> M
             "type per mesh"
         )
     vol_type = vol_types[0]
-    vol = [i for i, b in enumerate(blocks) if b.dim == vol_dim]
+    vol = [i for i, b in enumerate(blocks) if b.type == vol_type and len(b.data)]
     offset = dict(zip(vol, np.cumsum([0] + [len(blocks[i].data) for i in vol]), strict=False))
     cells = np.concatenate([np.asarray(blocks[i].data, dtype=np.int64) for i in vol])
     n_file = len(raw.points)
@@ -265,8 +288,43 @@ def _orient_facets(facets: np.ndarray, boundary: np.ndarray) -> np.ndarray:
     return out
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _cell_fields(psi, x, mesh, params):
+def _von_mises(s3):
+    """Von Mises stress of ``(..., 3, 3)`` Cauchy stresses."""
+    eye = jnp.eye(3, dtype=s3.dtype).reshape((1,) * (s3.ndim - 2) + (3, 3))
+    dev = s3 - jnp.trace(s3, axis1=-2, axis2=-1)[..., None, None] / 3.0 * eye
+    return jnp.sqrt(1.5 * jnp.sum(dev * dev, axis=(-2, -1)))
+
+
+def _embed3(F):
+    """The 3D embedding ``diag(F, 1)`` of in-plane ``(..., 2, 2)`` deformation gradients."""
+    F3 = jnp.zeros(F.shape[:-2] + (3, 3), F.dtype).at[..., :2, :2].set(F)
+    return F3.at[..., 2, 2].set(1.0)
+
+
+# the in-plane probe of the plane-strain consistency test ψ₂(F) = ψ₃(diag(F, 1)) + const
+_PROBE = np.array([[1.1, 0.07], [-0.04, 0.93]])
+
+
+def _plane_strain_parts(psi, F, J, params, ax):
+    """σ_zz ``(c, q)`` of the 3D embedding and, per cell, the relative mismatch of the
+    in-plane P of ψ on 3×3 F against ψ on 2×2 F at a fixed probe F (0 when ψ on 2×2 F
+    is the plane-strain restriction of ψ on 3×3 F)."""
+    P3 = jax.vmap(jax.vmap(first_piola(psi), in_axes=(0, None)), in_axes=(0, ax))(
+        _embed3(F), params
+    )
+    szz = P3[..., 2, 2] / J  # σ = P Fᵀ / J and row z of diag(F, 1) is e_z
+    Fp = jnp.asarray(_PROBE, F.dtype)
+    c = J.shape[0]
+    P2p = jax.vmap(lambda p: first_piola(psi)(Fp, p), in_axes=(ax,), axis_size=c)(params)
+    P3p = jax.vmap(lambda p: first_piola(psi)(_embed3(Fp), p), in_axes=(ax,), axis_size=c)(params)
+    diff = jnp.max(jnp.abs(P3p[:, :2, :2] - P2p), axis=(-2, -1))
+    scale = jnp.max(jnp.abs(P2p), axis=(-2, -1))
+    mismatch = jnp.where(scale > 0, diff / jnp.where(scale > 0, scale, 1.0), diff)
+    return szz, mismatch
+
+
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _cell_fields(psi, x, mesh, params, embed: bool):
     F = deformation_gradients(x, mesh)  # (c, q, d, d); F̄ under the F-bar formulation
     c, q, d = F.shape[:3]
     ax = cell_params_axes(params, mesh.n_cells)
@@ -274,40 +332,95 @@ def _cell_fields(psi, x, mesh, params):
     W = jax.vmap(jax.vmap(psi, in_axes=(0, None)), in_axes=(0, ax))(F, params)  # (c, q)
     J = jax.vmap(jax.vmap(det))(F)
     sigma = P @ jnp.swapaxes(F, -1, -2) / J[..., None, None]  # Cauchy σ = P Fᵀ / J
-    s3 = jnp.zeros((c, q, 3, 3), F.dtype).at[..., :d, :d].set(sigma)  # 2D: σ_zz = 0
-    dev = s3 - jnp.trace(s3, axis1=-2, axis2=-1)[..., None, None] / 3.0 * jnp.eye(3)[None, None]
+    s3 = jnp.zeros((c, q, 3, 3), F.dtype).at[..., :d, :d].set(sigma)  # σ_zz = 0 for now
     wn = mesh.weights / jnp.sum(mesh.weights, axis=1, keepdims=True)  # (c, q)
 
     def avg(a):  # weighted average over the quadrature points
         return jnp.einsum("cq,cq...->c...", wn, a)
 
-    return {
+    out = {
         "J": avg(J),
         "green_strain": avg(jax.vmap(jax.vmap(green_strain))(F)).reshape(c, d * d),
         "stress_P": avg(P).reshape(c, d * d),
-        "von_mises": avg(jnp.sqrt(1.5 * jnp.sum(dev * dev, axis=(-2, -1)))),
+        "von_mises": avg(_von_mises(s3)),
         "energy_density": avg(W),
     }
+    if embed:
+        szz, mismatch = _plane_strain_parts(psi, F, J, params, ax)
+        out["von_mises_plane_strain"] = avg(_von_mises(s3.at[..., 2, 2].set(szz)))
+        out["stress_zz"] = avg(szz)
+        out["mismatch"] = mismatch
+    return out
 
 
-def cell_fields(psi, x, mesh: Mesh, params) -> dict[str, np.ndarray]:
+def _accepts_3d(psi, mesh: Mesh, params) -> str | None:
+    """None if ψ returns a scalar for a 3×3 F, else why not (for the warning)."""
+    try:
+        check_psi(psi, 3, mesh.points.dtype, params, mesh.n_cells, where="cell_fields")
+    except Exception as e:  # noqa: BLE001 — any failure means: no 3D embedding
+        return f"{type(e).__name__}: {e}"
+    return None
+
+
+def cell_fields(psi, x, mesh: Mesh, params, *, plane: str = "strain") -> dict[str, np.ndarray]:
     """Per-cell output fields, averaged over the cell's quadrature points with their weights
     (the one value for P1; of F̄ under F-bar), jitted, mesh passed as an argument.
+
+    In 2D the von Mises stress needs the out-of-plane Cauchy stress σ_zz. Plane strain
+    (``plane="strain"``, the default, as in :func:`~jaxelastic.materials.lame`): σ_zz is the
+    zz Cauchy stress of the 3D embedding ``F₃ = diag(F, 1)`` of the same ψ, ``P₃_zz / J``
+    (for linear elasticity ``σ_zz = ν(σ_xx + σ_yy)``). That is the plane-strain σ_zz
+    whenever ψ on 2×2 F is the restriction of ψ on 3×3 F (true for every built-in
+    material); if ψ does not accept a 3×3 F, or its in-plane stress on ``diag(F, 1)``
+    differs from the 2D one (a genuinely 2D model), a :class:`UserWarning` says so and
+    von Mises is written with σ_zz = 0 and without ``stress_zz``. Plane stress
+    (``plane="stress"``): σ_zz = 0 exactly.
 
     Args:
         psi: strain-energy density ``psi(F, params)`` [energy / rest measure].
         x: ``(n_nodes, dim)`` current positions [length].
         mesh: the rest mesh.
         params: material parameters (shared scalars or per-cell leaves).
+        plane: 2D only: ``"strain"`` or ``"stress"`` (ignored in 3D).
 
     Returns:
         ``J`` ``(n_cells,)``: det F; ``green_strain`` ``(n_cells, d²)``: E = ½(FᵀF − I)
         row-major; ``stress_P`` ``(n_cells, d²)``: first Piola P [Pa]; ``von_mises``
-        ``(n_cells,)``: of the Cauchy stress σ = P Fᵀ/J [Pa] (2D: with σ_zz = 0, i.e. the
-        in-plane stress state); ``energy_density`` ``(n_cells,)``: ψ [Pa].
+        ``(n_cells,)``: of the Cauchy stress σ = P Fᵀ/J [Pa] (with σ_zz as above in 2D);
+        ``energy_density`` ``(n_cells,)``: ψ [Pa]; in 2D ``stress_zz`` ``(n_cells,)``: the
+        σ_zz used [Pa] (0 in plane stress).
     """
-    out = _cell_fields(psi, jnp.asarray(x, dtype=mesh.points.dtype), mesh, params)
-    return {k: np.asarray(v) for k, v in out.items()}
+    if plane not in ("strain", "stress"):
+        raise ValueError(f"plane must be 'strain' or 'stress', got {plane!r}")
+    check_positions(x, mesh, where="cell_fields")
+    check_psi(psi, mesh.dim, mesh.points.dtype, params, mesh.n_cells, where="cell_fields")
+    strain2d = mesh.dim == 2 and plane == "strain"
+    why = _accepts_3d(psi, mesh, params) if strain2d else None
+    embed = strain2d and why is None
+    out = _cell_fields(psi, jnp.asarray(x, dtype=mesh.points.dtype), mesh, params, embed)
+    out = {k: np.asarray(v) for k, v in out.items()}
+    if embed:
+        mismatch = float(np.nanmax(out.pop("mismatch")))
+        vm, szz = out.pop("von_mises_plane_strain"), out.pop("stress_zz")
+        tol = float(np.sqrt(np.finfo(out["J"].dtype).eps))
+        if mismatch <= tol:
+            out["von_mises"], out["stress_zz"] = vm, szz
+        else:
+            why = (
+                f"its in-plane stress on diag(F, 1) differs from that on F by {mismatch:.2g} "
+                "(relative): it is not the plane-strain restriction of a 3D model"
+            )
+    elif mesh.dim == 2 and plane == "stress":
+        out["stress_zz"] = np.zeros_like(out["J"])
+    if why is not None:
+        warnings.warn(
+            f"plane strain: von_mises is written with σ_zz = 0 (the in-plane stress state) "
+            f"and without stress_zz, since σ_zz cannot be taken from the 3D embedding of ψ "
+            f"{psi_name(psi)!r}: {why}",
+            UserWarning,
+            stacklevel=2,
+        )
+    return out
 
 
 def _pad3(a: np.ndarray) -> np.ndarray:
@@ -338,17 +451,28 @@ def write_atomic(path, write_fn) -> None:
     """
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
-    os.close(fd)
+    tmp = None
     try:
+        for _ in range(100):
+            # the name is bound before the file exists (unlike tempfile.mkstemp), so an
+            # interrupt landing at any instant leaves nothing the cleanup below cannot see
+            tmp = os.path.join(directory, f".{os.path.basename(path)}.{secrets.token_hex(8)}.tmp")
+            try:
+                os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+                break
+            except FileExistsError:  # someone else's file: never remove it
+                tmp = None
+        else:
+            raise FileExistsError(f"cannot create a temporary file for {path!r}")
         write_fn(tmp)
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; outputs are meant to be read
+        os.chmod(tmp, 0o644)  # created 0600; outputs are meant to be read
         os.replace(tmp, path)
     except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.remove(tmp)
         raise
 
 
@@ -460,6 +584,7 @@ def write_vtu(
     cell_data=None,
     psi=None,
     params=None,
+    plane: str = "strain",
     protect=(),
     overwrite: bool = True,
 ) -> None:
@@ -473,15 +598,17 @@ def write_vtu(
         point_data, cell_data: extra arrays, leading axis ``n_nodes`` resp. ``n_cells``;
             ``(n_nodes, 2)`` point vectors are padded to 3 components.
         psi, params: when both are given, add the :func:`cell_fields` (J, green_strain,
-            stress_P, von_mises, energy_density).
+            stress_P, von_mises, energy_density; in 2D stress_zz).
+        plane: 2D only, ``"strain"`` (default) or ``"stress"``: the out-of-plane stress
+            assumed by ``von_mises`` (see :func:`cell_fields`).
         protect: paths (or :class:`MeshData`) that must never be overwritten, e.g. the
             mesh file the data came from.
         overwrite: replace an existing ``path`` (default, what a time series needs).
 
     Raises:
         MeshIOError: ``path`` is protected, or exists and ``overwrite=False``.
-        ValueError: wrong array shapes, a name clash with a built-in field, or only one
-            of ``psi``/``params``.
+        ValueError: wrong array shapes, NaN/inf positions ``x`` (nothing is written), a
+            name clash with a built-in field, or only one of ``psi``/``params``.
     """
     import meshio
 
@@ -498,8 +625,18 @@ def write_vtu(
     x = rest if x is None else np.asarray(x, dtype=np.float64)
     if x.shape != rest.shape:
         raise ValueError(f"x must have shape {rest.shape} like mesh.points, got {x.shape}")
+    bad = ~np.isfinite(x).all(axis=1)
+    if bad.any():
+        idx = np.flatnonzero(bad)
+        raise ValueError(
+            f"write_vtu: x (positions) has NaN/inf coordinates at {idx.size} of {x.shape[0]} "
+            f"node(s), e.g. nodes {idx[:5].tolist()}; refusing to write {path!r} (was the "
+            "solve successful? check solution.status)"
+        )
     pdata: dict[str, Any] = {"displacement": _pad3(x - rest)}
-    cdata: dict[str, Any] = cell_fields(psi, x, mesh, params) if psi is not None else {}
+    cdata: dict[str, Any] = {}
+    if psi is not None:
+        cdata = cell_fields(psi, x, mesh, params, plane=plane)
     for extra, out, n, what in (
         (point_data, pdata, mesh.n_nodes, "n_nodes"),
         (cell_data, cdata, mesh.n_cells, "n_cells"),
@@ -520,6 +657,16 @@ def write_vtu(
     write_atomic(path, lambda tmp: meshio.write(tmp, m, file_format="vtu"))
 
 
+def _time_labels(times: list[float]) -> list[str]:
+    """``.pvd`` time stamps: 12 significant digits (``0.7``, not ``0.7000000000000001``),
+    the exact ``repr`` for any times that 12 digits would not tell apart."""
+    short = [f"{t:.12g}" for t in times]
+    seen: dict[str, set[float]] = {}
+    for t, s in zip(times, short, strict=True):
+        seen.setdefault(s, set()).add(t)
+    return [s if len(seen[s]) == 1 else repr(t) for t, s in zip(times, short, strict=True)]
+
+
 class TimeSeriesWriter:
     """Write ``directory/basename_0000.vtu``, … and the ParaView collection ``basename.pvd``.
 
@@ -533,15 +680,21 @@ class TimeSeriesWriter:
         basename: file stem (no path separators).
         mesh: the rest mesh.
         psi, params: optional material, to add :func:`cell_fields` to every step.
+        plane: 2D only, ``"strain"`` or ``"stress"`` (see :func:`cell_fields`).
     """
 
-    def __init__(self, directory, basename: str, mesh: Mesh, psi=None, params=None):
+    def __init__(
+        self, directory, basename: str, mesh: Mesh, psi=None, params=None, *, plane="strain"
+    ):
         if not basename or os.sep in basename or (os.altsep and os.altsep in basename):
             raise ValueError(f"basename must be a plain file stem, got {basename!r}")
         if (psi is None) != (params is None):
             raise ValueError("pass both psi and params to write stress and strain fields")
         self.directory = os.fspath(directory)
+        if plane not in ("strain", "stress"):
+            raise ValueError(f"plane must be 'strain' or 'stress', got {plane!r}")
         self.basename, self.mesh, self.psi, self.params = basename, mesh, psi, params
+        self.plane = plane
         self.steps: list[tuple[float, str]] = []  # (time, file name relative to directory)
         self._closed = False
         os.makedirs(self.directory, exist_ok=True)
@@ -576,7 +729,14 @@ class TimeSeriesWriter:
         path = os.path.join(self.directory, name)
         p = self.params if params is None else params
         write_vtu(
-            path, self.mesh, x, point_data=point_data, cell_data=cell_data, psi=self.psi, params=p
+            path,
+            self.mesh,
+            x,
+            point_data=point_data,
+            cell_data=cell_data,
+            psi=self.psi,
+            params=p,
+            plane=self.plane,
         )
         self.steps.append((t, name))
         self._write_pvd()
@@ -585,8 +745,9 @@ class TimeSeriesWriter:
     def _write_pvd(self) -> None:
         root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
         coll = ET.SubElement(root, "Collection")
-        for t, name in self.steps:
-            ET.SubElement(coll, "DataSet", timestep=repr(t), group="", part="0", file=name)
+        labels = _time_labels([t for t, _ in self.steps])
+        for label, (_, name) in zip(labels, self.steps, strict=True):
+            ET.SubElement(coll, "DataSet", timestep=label, group="", part="0", file=name)
         ET.indent(root)
         tree = ET.ElementTree(root)
         write_atomic(self.pvd_path, lambda tmp: tree.write(tmp, "utf-8", xml_declaration=True))

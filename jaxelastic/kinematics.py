@@ -51,7 +51,16 @@ def deformation_gradients(x: jax.Array, mesh, *, fbar: bool | None = None) -> ja
 
     Returns:
         ``(n_cells, n_q, dim, dim)`` deformation gradients (dimensionless).
+
+    Raises:
+        ValueError: ``x`` does not have the shape ``(n_nodes, dim)`` of ``mesh.points``
+            (a static check: free under jit, per example under vmap).
     """
+    if tuple(jnp.shape(x)) != tuple(mesh.points.shape):
+        raise ValueError(
+            f"deformation_gradients: x must have shape (n_nodes, dim) = "
+            f"{tuple(mesh.points.shape)} like mesh.points, got {tuple(jnp.shape(x))}"
+        )
     xe = x[mesh.cells]  # (c, k, d)
     c, k, d = xe.shape
     if k == d + 1:

@@ -12,6 +12,11 @@ Consistent integration: a constant traction t on a facet gives ``t·∫N_a dA`` 
 with the isoparametric facet geometry (:func:`facet_integrals`). Masses are lumped: row sums
 for P1 and composite cells, HRZ diagonal scaling for P2 (:func:`lumped_mass`); gravity is
 mass × g by default, or the consistent ``∫ρ g N_a dV`` (``consistent=True``).
+
+The builders return NumPy arrays in the mesh's float dtype (so a float32 mesh gets float32
+loads and masses, which :class:`~jaxelastic.potential.Potential` requires) and refuse
+arguments of the wrong shape with a message naming the argument, the expected and the
+given shape.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .energy import first_piola, forces
+from .energy import check_positions, check_psi, first_piola, forces
 from .kinematics import deformation_gradients
 from .mesh import Mesh, boundary_facets
 from .mesh.elements import Element, facet_rule
@@ -65,6 +70,22 @@ class Dirichlet(NamedTuple):
 def no_dirichlet(mesh: Mesh) -> Dirichlet:
     """No prescribed dofs (free-floating body: only valid with inertia)."""
     return Dirichlet(mask=jnp.zeros(mesh.points.shape, dtype=bool), values=jnp.asarray(mesh.points))
+
+
+def _mesh_dtype(mesh: Mesh, a) -> np.ndarray:
+    """``a`` as a NumPy array in the mesh's float dtype."""
+    return np.asarray(a, dtype=np.dtype(mesh.points.dtype))
+
+
+def _per_item(value, m: int, d: int, name: str, what: str) -> np.ndarray:
+    """``value`` ``(d,)`` or ``(m, d)`` broadcast to ``(m, d)`` float64, or a ValueError
+    naming ``name``, the expected and the given shape."""
+    v = np.asarray(value, dtype=np.float64)
+    if v.shape not in ((d,), (1, d), (m, d)):
+        raise ValueError(
+            f"{name} must have shape ({d},) or ({m}, {d}) (one per {what}), got {v.shape}"
+        )
+    return np.broadcast_to(v, (m, d))
 
 
 def _node_array(nodes, n: int) -> np.ndarray:
@@ -234,28 +255,45 @@ def traction_load(mesh: Mesh, facets, traction) -> np.ndarray:
     X = np.asarray(mesh.points)
     facets = np.asarray(facets, dtype=np.int64)
     n, d = X.shape
+    k = len(mesh.element_type.facet_nodes[0])
+    if facets.ndim != 2 or facets.shape[1] != k:
+        raise ValueError(
+            f"facets must have shape (m, {k}) ({k}-node facets of {mesh.element}), got "
+            f"{facets.shape}"
+        )
+    if facets.size and (facets.min() < 0 or facets.max() >= n):
+        raise ValueError(f"facets reference node indices outside [0, {n})")
     Nint, _, _ = facet_integrals(X, facets, mesh.element_type)
+    m = facets.shape[0]
     if callable(traction):
         t = np.asarray(traction(X[facets[:, :d]].mean(axis=1)), float)
+        if t.shape != (m, d):
+            raise ValueError(f"traction(X) must return shape ({m}, {d}), got {t.shape}")
     else:
-        t = np.broadcast_to(np.asarray(traction, float), (facets.shape[0], d))
+        t = _per_item(traction, m, d, "traction", "facet")
     f = np.zeros((n, d))
     for a in range(facets.shape[1]):
         np.add.at(f, facets[:, a], Nint[:, a, None] * t)
-    return f
+    return _mesh_dtype(mesh, f)
 
 
 def point_load(mesh: Mesh, nodes, force) -> np.ndarray:
     """Nodal forces ``(n_nodes, dim)`` with ``force`` ``(dim,)`` or ``(m, dim)`` on ``nodes``."""
-    X = np.asarray(mesh.points)
+    X = np.asarray(mesh.points, dtype=np.float64)
     idx = _node_array(nodes, X.shape[0])
     f = np.zeros_like(X)
-    np.add.at(f, idx, np.broadcast_to(np.asarray(force, float), (idx.size, X.shape[1])))
-    return f
+    np.add.at(f, idx, _per_item(force, idx.size, X.shape[1], "force", "node"))
+    return _mesh_dtype(mesh, f)
 
 
 def _density(mesh: Mesh, density) -> np.ndarray:
-    rho = np.broadcast_to(np.asarray(density, float), (mesh.n_cells,))
+    rho = np.asarray(density, float)
+    if rho.shape not in ((), (mesh.n_cells,)):
+        raise ValueError(
+            f"density must be a scalar or have shape ({mesh.n_cells},) (one per cell), got "
+            f"{rho.shape}"
+        )
+    rho = np.broadcast_to(rho, (mesh.n_cells,))
     if np.any(rho <= 0) or not np.all(np.isfinite(rho)):
         raise ValueError("density must be finite and > 0")
     return rho
@@ -302,14 +340,16 @@ def lumped_mass(mesh: Mesh, density) -> np.ndarray:
     el = mesh.element_type
     if el.is_composite:
         cells, share = _sub_shares(mesh)
-        return _scatter(mesh, cells, share * np.repeat(rho, len(el.sub_cells))[:, None])
+        m = _scatter(mesh, cells, share * np.repeat(rho, len(el.sub_cells))[:, None])
+        return _mesh_dtype(mesh, m)
     cells = np.asarray(mesh.cells)
     if el.order == 1:
-        share = (rho * np.asarray(mesh.volumes) / cells.shape[1])[:, None]
-        return _scatter(mesh, cells, np.repeat(share, cells.shape[1], axis=1))
+        share = (rho * np.asarray(mesh.volumes, dtype=np.float64) / cells.shape[1])[:, None]
+        return _mesh_dtype(mesh, _scatter(mesh, cells, np.repeat(share, cells.shape[1], axis=1)))
     n1, n2 = _p2_rule_integrals(mesh)
     vol = n1.sum(axis=1)
-    return _scatter(mesh, cells, (rho * vol)[:, None] * n2 / n2.sum(axis=1, keepdims=True))
+    m = _scatter(mesh, cells, (rho * vol)[:, None] * n2 / n2.sum(axis=1, keepdims=True))
+    return _mesh_dtype(mesh, m)
 
 
 def gravity_load(mesh: Mesh, density, g, *, consistent: bool = False) -> np.ndarray:
@@ -320,12 +360,18 @@ def gravity_load(mesh: Mesh, density, g, *, consistent: bool = False) -> np.ndar
     work-equivalent ``ρ g ∫N_a dV`` (identical for P1 and composite cells; for P2 it is the
     load of the optimal convergence rates, with negative corner shares on ``tet10``).
     """
-    gv = np.asarray(g, float)[None, :]
+    gv = np.asarray(g, float)
+    if gv.shape != (mesh.dim,):
+        raise ValueError(f"g must have shape ({mesh.dim},) for a {mesh.dim}D mesh, got {gv.shape}")
+    if not np.isfinite(gv).all():
+        raise ValueError(f"g must be finite, got {gv.tolist()}")
     if not consistent or mesh.element_type.order == 1:
-        return lumped_mass(mesh, density)[:, None] * gv
+        return _mesh_dtype(mesh, lumped_mass(mesh, density).astype(np.float64)[:, None] * gv)
     rho = _density(mesh, density)
     n1, _ = _p2_rule_integrals(mesh)
-    return _scatter(mesh, np.asarray(mesh.cells), rho[:, None] * n1)[:, None] * gv
+    return _mesh_dtype(
+        mesh, _scatter(mesh, np.asarray(mesh.cells), rho[:, None] * n1)[:, None] * gv
+    )
 
 
 def reaction_force(
@@ -337,6 +383,9 @@ def reaction_force(
     prescribed dof is ``∂Π/∂x`` there (elastic gradient minus external load). Summed over
     the set, it balances the applied loads: ``reaction + Σ f_ext = 0`` in statics.
     """
+    for name, a in (("f_ext", f_ext), ("inertia", inertia), ("dirichlet.mask", dirichlet.mask)):
+        if a is not None:
+            check_positions(a, mesh, name=name, where="reaction_force")
     r = -forces(psi, x, mesh, params)
     if f_ext is not None:
         r = r - f_ext
@@ -351,6 +400,8 @@ def facet_tractions(psi, x, mesh: Mesh, params, facets) -> np.ndarray:
     P is the weighted average over the quadrature points of the cell that owns each facet
     (the one value for P1; of P(F̄) under F-bar), N is the outward rest normal.
     """
+    check_positions(x, mesh, where="facet_tractions")
+    check_psi(psi, mesh.dim, mesh.points.dtype, params, mesh.n_cells, where="facet_tractions")
     facets = np.asarray(facets, dtype=np.int64)
     el = mesh.element_type
     d = mesh.dim

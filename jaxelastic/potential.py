@@ -11,6 +11,16 @@
 A :class:`Potential` is a frozen pytree whose optional parts are ``None`` when a scene does
 not need them; jit specialises on that structure, so a scene without gravity compiles no
 load term and statics no inertia.
+
+Construction checks (static shapes and dtypes only, so also free under jit/vmap, where the
+per-example shapes are checked): ``f_ext``, ``x_tilde``, ``x_prev`` must be
+``(n_nodes, dim)`` like ``mesh.points``, ``mass`` ``(n_nodes,)``, the scalars ``()``; ψ
+must return a scalar float (:func:`~jaxelastic.energy.check_psi`, cached per ψ). The
+mesh's float dtype is the working precision: a float leaf that would widen it (a float64
+``f_ext`` or parameter on a float32 mesh with x64 enabled) is refused, because it would
+silently promote the solve and break its loops; narrower leaves are promoted exactly.
+To vmap over a field, replace it inside the vmapped function
+(``jax.vmap(lambda f: je.solve(pot.replace(f_ext=f), bc).x)(fs)``).
 """
 
 from __future__ import annotations
@@ -21,7 +31,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from .energy import Psi, assemble, element_hessians, energy, forces, hvp
+from .energy import Psi, assemble, check_psi, element_hessians, energy, forces, hvp
 from .mesh import Mesh
 
 __all__ = [
@@ -33,6 +43,7 @@ __all__ = [
     "element_hessian_vp",
     "elastic_element_hessians",
     "mass_diagonal",
+    "check_potential",
 ]
 
 
@@ -51,6 +62,10 @@ class Potential:
         mass_damping: scalar c_M, or None.
         stiffness_damping: scalar c_K, or None.
         psi: the strain-energy density (static).
+
+    Raises (at construction, see :func:`check_potential`):
+        ValueError: a field of the wrong shape, or a float leaf wider than the mesh's dtype.
+        TypeError: ψ does not return a scalar float for one ``(dim, dim)`` F.
     """
 
     mesh: Mesh
@@ -63,6 +78,9 @@ class Potential:
     mass_damping: jax.Array | None = None
     stiffness_damping: jax.Array | None = None
     psi: Psi = dataclasses.field(kw_only=True, metadata=dict(static=True))
+
+    def __post_init__(self):
+        check_potential(self)
 
     def replace(self, **kw) -> Potential:
         return dataclasses.replace(self, **kw)
@@ -83,6 +101,69 @@ jax.tree_util.register_dataclass(
     ],
     meta_fields=["psi"],
 )
+
+
+_FIELD_SHAPES = {
+    "f_ext": ("(n_nodes, dim)", lambda n, d: (n, d)),
+    "mass": ("(n_nodes,)", lambda n, d: (n,)),
+    "x_tilde": ("(n_nodes, dim)", lambda n, d: (n, d)),
+    "x_prev": ("(n_nodes, dim)", lambda n, d: (n, d)),
+    "inertia_weight": ("() (a scalar)", lambda n, d: ()),
+    "mass_damping": ("() (a scalar)", lambda n, d: ()),
+    "stiffness_damping": ("() (a scalar)", lambda n, d: ()),
+}
+
+
+def _is_array(a) -> bool:
+    return hasattr(a, "shape") and hasattr(a, "dtype")
+
+
+def _widening_leaves(pot: Potential, mesh_dtype):
+    """``(name, dtype)`` of every strongly typed float leaf wider than the mesh's dtype."""
+    named = [(k, getattr(pot, k)) for k in _FIELD_SHAPES] + [("params", pot.params)]
+    for name, tree in named:
+        for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+            if not _is_array(leaf) or getattr(leaf, "weak_type", False):
+                continue
+            dt = jax.dtypes.canonicalize_dtype(leaf.dtype)
+            if jnp.issubdtype(dt, jnp.floating) and jnp.promote_types(dt, mesh_dtype) != mesh_dtype:
+                yield name + jax.tree_util.keystr(path), dt
+
+
+def check_potential(pot: Potential) -> None:
+    """Check the shapes and float dtypes of ``pot``'s fields against its mesh, and ψ.
+
+    Runs at construction (and on every rebuild of the pytree, e.g. inside jit, where only
+    static shapes are used). Fields that are not arrays (None, or JAX's placeholders when it
+    rebuilds the tree, e.g. for ``in_axes``) and meshes that are not ``(n_nodes, dim)``
+    arrays (stacked potentials) are not checked.
+
+    Raises:
+        ValueError: a field of the wrong shape (the message names the field, the expected
+            and the given shape), or a float leaf wider than the mesh's dtype (naming both).
+        TypeError: ψ does not return a scalar float (see :func:`~jaxelastic.energy.check_psi`).
+    """
+    pts: Any = getattr(pot.mesh, "points", None)
+    if not _is_array(pts) or len(pts.shape) != 2 or not _is_array(pot.mesh.cells):
+        return
+    n, d = (int(k) for k in pts.shape)
+    for name, (what, expected) in _FIELD_SHAPES.items():
+        a = getattr(pot, name)
+        if _is_array(a) and tuple(a.shape) != expected(n, d):
+            raise ValueError(
+                f"Potential: {name} must have shape {what} = {expected(n, d)} for this mesh of "
+                f"{n} nodes in {d}D, got {tuple(a.shape)}"
+            )
+    mesh_dtype = jax.dtypes.canonicalize_dtype(pts.dtype)
+    for name, dt in _widening_leaves(pot, mesh_dtype):
+        raise ValueError(
+            f"Potential: {name} has dtype {dt} but the mesh is {mesh_dtype} (mesh.points); "
+            f"mixing them would promote the solve to {dt}. Build the mesh in {dt} (e.g. "
+            f"je.from_arrays(points, cells, dtype=jnp.{dt}) or je.rectangle(..., dtype=jnp.{dt}))"
+            f" or cast {name.split('.')[0].split('[')[0]} to {mesh_dtype}"
+        )
+    n_cells = int(pot.mesh.cells.shape[0])
+    check_psi(pot.psi, d, mesh_dtype, pot.params, n_cells, where="Potential", own_errors=False)
 
 
 def _needs(a: jax.Array | None, name: str) -> jax.Array:

@@ -236,9 +236,9 @@ def ogden(F: jax.Array, params: Ogden) -> jax.Array:
     Ogden 1972, *Proc. R. Soc. Lond. A* 326:565; modified stretches
     ``λ̄_i = J^{-1/3} λ_i`` (Holzapfel 2000, §6.5). Shear modulus μ = ½ Σ μ_p α_p.
     ``Σ_i λ̄_i^α = J^{-α/3} Σ_i c_i^{α/2}`` over the eigenvalues c_i of C = FᵀF, evaluated
-    with :func:`jaxelastic.spectral.stretch_sum` (from an SVD of F), whose custom JVP keeps the gradient,
-    Hessian and HVP finite at repeated stretches (F = I, uniaxial, equibiaxial) and makes
-    the α_p differentiable. F: ``(d, d)``; ψ [stress].
+    with :func:`jaxelastic.spectral.stretch_sum` (from an SVD of F), whose custom JVP keeps
+    the gradient, Hessian and HVP finite at repeated stretches (F = I, uniaxial,
+    equibiaxial) and makes the α_p differentiable. F: ``(d, d)``; ψ [stress].
     """
     ok, F3, J = safe_state(F)
     psi = volumetric(J, params.kappa)
@@ -329,9 +329,13 @@ class ArrudaBoyce(NamedTuple):
         """Initial shear modulus ``μ₀ = 2 μ Σ i α_i 3^{i−1}/λ_m^{2i−2}``
         (= μ(1 + 3/(5λ_m²) + 99/(175λ_m⁴) + 513/(875λ_m⁶) + 42039/(67375λ_m⁸)))."""
         lm2 = self.lambda_m**2
-        return 2.0 * self.mu * sum(
-            i * a * 3.0 ** (i - 1) / lm2 ** (i - 1)
-            for i, a in enumerate(ARRUDA_BOYCE_COEFFS, start=1)
+        return (
+            2.0
+            * self.mu
+            * sum(
+                i * a * 3.0 ** (i - 1) / lm2 ** (i - 1)
+                for i, a in enumerate(ARRUDA_BOYCE_COEFFS, start=1)
+            )
         )
 
     @property

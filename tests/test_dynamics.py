@@ -282,3 +282,24 @@ def test_rayleigh_damping_dissipates_faster(mesh, base, clamp, damping):
     assert np.all(np.diff(Ed) <= 1e-10 * Ed[0])
     assert np.all(Ed[5:] < Ep[5:]), (Ed, Ep)
     assert Ed[-1] < 0.7 * Ep[-1]
+
+
+def test_free_swing_bdf2_no_false_max_steps():
+    """A linear P2 cantilever swinging freely under BDF2 (the case of issue 15: it stopped
+    with MAX_STEPS at residual 3.4e-8 after 50 iterations with the default rtol, below the
+    residual's round-off floor). Linear material: one Newton step per time step."""
+    mesh = je.rectangle(40, 4, size=(10.0, 1.0), origin=(0.0, -0.5), order=2)
+    params = je.Lame(*je.lame(1e6, 0.3, dim=2, plane="stress"))
+    clamp = L.fix(mesh, L.nodes_on_plane(mesh, 0, 0.0))
+    tip = L.facets_where(mesh, lambda X: np.isclose(X[:, 0], 10.0))
+    f = jnp.asarray(L.traction_load(mesh, tip, [0.0, -1.0]))
+    static = je.solve(je.Potential(mesh=mesh, params=params, f_ext=f, psi=M.linear), clamp)
+    assert int(static.stats["steps"]) == 1
+    pot = je.Potential(
+        mesh=mesh, params=params, mass=jnp.asarray(L.lumped_mass(mesh, 1000.0)), psi=M.linear
+    )
+    _, recs = D.simulate(
+        pot, D.init_state(static.x), clamp, D.Integrator(0.164, "bdf2"), 25, progress=False
+    )
+    assert [r["status"] for r in recs] == ["SUCCESS"] * 25
+    assert max(r["newton_steps"] for r in recs) == 1

@@ -216,3 +216,35 @@ def test_nested_nodes_and_markers():
     assert not np.any(np.asarray(m.points)[k, 0] == 0.0)  # no clamped node observed
     np.testing.assert_array_equal(k, choose_markers(mask, 0.1, seed=0))  # reproducible
     assert choose_markers(mask, 1.0, seed=0).size == m.n_nodes - 3
+
+
+def test_an_interrupted_fit_writes_a_marked_summary(tmp_path, monkeypatch, capsys):
+    """SIGINT during the optimiser: exit 130, summary.json "interrupted", no temporaries."""
+    import importlib
+    import os
+    import signal
+    import time
+
+    fit_mod = importlib.import_module("jaxelastic.scene.fit")
+
+    def interrupted_fit(*args, **kw):
+        if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:  # ours
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(30)
+        raise AssertionError("the fit was not interrupted")
+
+    monkeypatch.setattr(fit_mod.fitting, "fit", interrupted_fit)
+    scene = _write(tmp_path, TINY_FIT % SYNTH)
+    out = tmp_path / "out"
+    t0 = time.perf_counter()
+    assert cli.main(["fit", str(scene), "--out", str(out), "--no-progress", "--no-cache"]) == 130
+    assert time.perf_counter() - t0 < 25  # stopped at once, not after the sleep
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("jaxelastic: interrupted by SIGINT after the observations")
+    assert "(no fitted values)" in err and err.count("\n") == 0
+    with open(out / "summary.json") as f:
+        s = json.load(f)
+    assert s["status"] == "interrupted" and s["interrupted"] and s["signal"] == "SIGINT"
+    assert s["completed"] == "the observations; interrupted during the optimiser"
+    assert s["observations"]["n_markers"] > 0 and "result" not in s
+    assert not [f for f in os.listdir(out) if f.endswith(".tmp")]

@@ -394,6 +394,10 @@ def test_write_vtu_affine_round_trip(tmp_path, dim):
     np.testing.assert_allclose(c["stress_P"], np.tile(P.ravel(), (n, 1)), rtol=1e-12)
     s = np.zeros((3, 3))
     s[:dim, :dim] = P @ A.T / np.linalg.det(A)
+    if dim == 2:  # plane strain: σ_zz of diag(F, 1); neo-Hookean P_zz = μ(1 − 1) + λ ln J
+        J = np.linalg.det(A)
+        s[2, 2] = params.lam * np.log(J) / J
+        np.testing.assert_allclose(c["stress_zz"], s[2, 2], rtol=1e-12)
     dev = s - np.trace(s) / 3 * np.eye(3)
     np.testing.assert_allclose(c["von_mises"], np.sqrt(1.5 * np.sum(dev**2)), rtol=1e-12)
     np.testing.assert_allclose(c["energy_density"], float(jax.jit(psi)(A, params)), rtol=1e-12)

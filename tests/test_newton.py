@@ -9,6 +9,8 @@ values never recompile) and two Newton objects. Tests about the matrix-free path
 ``"auto"`` is CG).
 """
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -396,3 +398,95 @@ def test_twist_dirichlet_only(blk):
     ang = np.angle(np.exp(1j * ang))
     far = np.hypot(X[:, 1] - 0.5, X[:, 2] - 0.5) > 0.1
     assert np.all((ang[far] > 0.3 * theta) & (ang[far] < 0.9 * theta)), ang[far]
+
+
+# --------------------------------------------------------------------------------------
+# Round-off floor of the residual: no false MAX_STEPS
+# --------------------------------------------------------------------------------------
+
+
+def test_stiff_linear_problem_stops_at_the_roundoff_floor():
+    """A steel block (E = 210 GPa, linear material) under a small end load: one Newton
+    step solves it exactly; the residual left is round-off (~eps·|K||x|), which rtol·‖f‖
+    lies below. Newton must stop there with SUCCESS after one step (it took 2–3 before)
+    and report the floor it used."""
+    mesh = je.box(6, 2, 2, size=(3.0, 0.5, 0.5))
+    params = je.Lame(*je.lame(210e9, 0.3))
+    clamp = L.fix(mesh, L.nodes_on_plane(mesh, 0, 0.0))
+    end = L.facets_where(mesh, lambda X: np.isclose(X[:, 0], 3.0))
+    f = jnp.asarray(L.traction_load(mesh, end, [0.0, 0.0, -1e4]))
+    pot = je.Potential(mesh=mesh, params=params, f_ext=f, psi=M.linear)
+    res = solve(pot, clamp, solver=Newton(linear="direct"))
+    assert int(res.stats["steps"]) == 1
+    floor = float(res.stats["residual_floor"])
+    assert 0 < float(res.stats["residual"]) <= floor
+    # the floor is round-off, far below the load: the answer is the linear one
+    assert floor < 1e-6 * float(jnp.linalg.norm(f))  # ~1e-7 relative here
+    ref = solve(pot, clamp, solver=Newton(linear="cg", rtol=1e-6))
+    np.testing.assert_allclose(np.asarray(res.x), np.asarray(ref.x), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "name, free",
+    [
+        ("none", "6 rigid-body motion(s) free (translation along x"),
+        ("one node", "3 rigid-body motion(s) free (rotation about x, rotation about y"),
+        ("x on a plane", "3 rigid-body motion(s) free (translation along y"),
+    ],
+)
+def test_unconstrained_static_solve_is_refused_before_solving(blk, name, free):
+    """A static solve whose Dirichlet data leave rigid motions free has no unique answer
+    (it used to end in MAX_STEPS with a residual of 1e9): refused before any compilation,
+    naming the free motions. Dynamics (a mass term) accepts a free body."""
+    bc = {
+        "none": L.no_dirichlet(blk),
+        "one node": L.fix(blk, np.array([0])),
+        "x on a plane": L.fix(blk, L.nodes_on_plane(blk, 0, 0.0), components=[0]),
+    }[name]
+    g = jnp.asarray(L.gravity_load(blk, 1.0, [0.0, 0.0, -9.81]))
+    pot = je.Potential(mesh=blk, params=PARAMS, f_ext=g, psi=M.neo_hookean)
+    with pytest.raises(ValueError, match=re.escape(free)):
+        solve(pot, bc)
+    mass = jnp.asarray(L.lumped_mass(blk, 1.0))
+    state = je.dynamics.init_state(blk.points)
+    _, res = je.dynamics.step(pot.replace(mass=mass), state, bc, je.Integrator(0.01))
+    assert bool(res.ok)
+
+
+def test_float32_converges_at_its_roundoff_floor():
+    """With x64 off in a subprocess the README-sized problem converges (at the float32
+    round-off floor of the residual) instead of ending in MAX_STEPS."""
+    import subprocess
+    import sys
+
+    code = """
+import jax, jax.numpy as jnp, numpy as np
+import jaxelastic as je
+from jaxelastic import loads
+assert not jax.config.jax_enable_x64
+mesh = je.rectangle(16, 2, size=(4.0, 0.5))
+params = je.Lame(*je.lame(1e4, 0.3, dim=2))
+clamp = loads.fix(mesh, loads.nodes_on_plane(mesh, 0, 0.0))
+tip = loads.facets_where(mesh, lambda X: np.isclose(X[:, 0], 4.0))
+f = jnp.asarray(loads.traction_load(mesh, tip, [0.0, -20.0]))
+pot = je.Potential(mesh=mesh, params=params, f_ext=f, psi=je.materials.neo_hookean)
+for lin in ("cg", "direct"):
+    r = je.solve(pot, clamp, solver=je.Newton(linear=lin))
+    assert r.x.dtype == jnp.float32
+    print(lin, int(r.stats["steps"]), float(r.stats["residual"]), float(r.x[:, 1].min()))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = [line.split() for line in out.stdout.splitlines()]
+    assert len(rows) == 2
+    beam = je.rectangle(16, 2, size=(4.0, 0.5))
+    tip = L.facets_where(beam, lambda X: np.isclose(X[:, 0], 4.0))
+    f = jnp.asarray(L.traction_load(beam, tip, [0.0, -20.0]))
+    params = je.Lame(*je.lame(1e4, 0.3, dim=2))
+    pot = je.Potential(mesh=beam, params=params, f_ext=f, psi=M.neo_hookean)
+    clamp = L.fix(beam, L.nodes_on_plane(beam, 0, 0.0))
+    tip64 = float(solve(pot, clamp).x[:, 1].min())
+    for _, steps, _, tip32 in rows:
+        assert int(steps) < 20
+        # float32 at its floor (F from absolute positions): 2e-4 relative measured
+        assert abs(float(tip32) - tip64) < 1e-3 * abs(tip64)

@@ -276,19 +276,9 @@ def fit(
         GradientError: a forward solve at the initial guess failed.
     """
     t_start = time.perf_counter()
-    obj = make_objective(
-        cases,
-        init,
-        transforms=transforms,
-        regions=regions,
-        fields=fields,
-        plane=plane,
-        mesh=mesh,
-        regularization=regularization,
-        reg_kind=reg_kind,
-        solver=solver,
-        adjoint=adjoint,
-    )
+    kw: dict[str, Any] = dict(transforms=transforms, regions=regions, fields=fields, mesh=mesh)
+    kw.update(plane=plane, regularization=regularization, reg_kind=reg_kind)
+    obj = make_objective(cases, init, solver=solver, adjoint=adjoint, **kw)
     line_search = optimizer == "lbfgs"
     if isinstance(optimizer, str):
         optimizer = _named_optimizer(optimizer, float(learning_rate))

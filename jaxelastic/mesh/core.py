@@ -144,13 +144,18 @@ def from_arrays(
             from the shapes when omitted (6-node cells: ``tri6``, 10-node: ``tet10``).
         orient: ``"fix"`` (reorient negatively oriented cells, with a warning) or
             ``"refuse"`` (raise :class:`MeshError`).
-        dtype: float dtype of the stored arrays (default: the points' dtype if it is a
-            float type JAX accepts, else JAX's default float).
+        dtype: float dtype of the stored arrays, float32 or float64 (default: JAX's default
+            float, float64 with x64 enabled, else float32, whatever the points' dtype). It
+            is kept as given: a float32 mesh with x64 enabled computes in float32, and
+            :class:`~jaxelastic.potential.Potential` refuses float64 loads or parameters
+            on it rather than mixing precisions (the loads builders return the mesh's
+            dtype).
         formulation: ``"standard"``, ``"fbar"`` or ``"bbar"`` (not for P1 cells, where it
             changes nothing: use ``to_quadratic(mesh, composite=True)``).
 
     Raises:
-        MeshError: wrong shapes or dimension, NaN/inf coordinates, out-of-range or
+        MeshError: a ``dtype`` other than float32/float64, wrong shapes or dimension,
+            NaN/inf coordinates, out-of-range or
             duplicate indices within a cell, nodes used by no cell, zero-measure cells,
             or inverted cells with ``orient="refuse"``; P2/composite cells whose rest
             Jacobian changes sign between quadrature points (misplaced mid-edge nodes).
@@ -158,6 +163,7 @@ def from_arrays(
     if orient not in ("fix", "refuse"):
         raise ValueError(f"orient must be 'fix' or 'refuse', got {orient!r}")
     check_formulation(formulation)
+    dtype = _float_dtype(dtype)
     pts = _parse_points(points)
     cls = _parse_cells(cells)
     el = _resolve_element(element, pts.shape[1], cls.shape[1], formulation)
@@ -167,8 +173,6 @@ def from_arrays(
     gref = el.shape_gradients()  # (q, k, d)
     dN = np.einsum("qkb,cqba->cqka", gref, np.linalg.inv(Jac))  # (c, q, k, d)
     w = detJ * np.asarray(el.quad_weights)[None, :]  # (c, q)
-    if dtype is None:
-        dtype = jnp.zeros(()).dtype  # float64 if x64 is enabled, else float32
     return Mesh(
         points=jnp.asarray(pts, dtype=dtype),
         cells=jnp.asarray(cls),
@@ -178,6 +182,19 @@ def from_arrays(
         element=el.name,
         formulation=formulation,
     )
+
+
+def _float_dtype(dtype):
+    """The mesh's float dtype: ``dtype`` (float32/float64) or JAX's default float."""
+    if dtype is None:
+        return jnp.zeros(()).dtype  # float64 if x64 is enabled, else float32
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        raise MeshError(f"dtype must be float32 or float64, got {dtype!r}") from None
+    if dt not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise MeshError(f"dtype must be float32 or float64, got {dt}")
+    return dt
 
 
 def _parse_points(points) -> np.ndarray:

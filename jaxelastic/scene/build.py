@@ -24,7 +24,15 @@ import numpy as np
 from .. import dynamics, loads
 from ..io import MeshData, read_mesh
 from ..loads import Dirichlet
-from ..materials import BUILTIN, Lame, lame
+from ..materials import (
+    BUILTIN,
+    FAMILIES,
+    FAMILY_PARAMS,
+    HolzapfelGasserOgden,
+    Lame,
+    lame,
+    per_cell_fibres,
+)
 from ..mesh import (
     Mesh,
     MeshError,
@@ -38,12 +46,21 @@ from ..mesh import (
 from ..mesh.elements import edge_table
 from ..potential import Potential
 from ..solvers import CG, Newton, bind_solver
+from . import memory
 from .callables import CallableSpecError, import_callable, n_positional
 from .load import Scene, load_scene
 from .schema import DynamicIntegrator, RotateDisplacement, Selector, SolverSpec, axis_index
 from .where import WhereError, where_mask
 
-__all__ = ["Built", "build", "newton_of", "lift_file_mesh", "select_nodes", "select_facets"]
+__all__ = [
+    "Built",
+    "build",
+    "newton_of",
+    "lift_file_mesh",
+    "empty_mesh_counts",
+    "select_nodes",
+    "select_facets",
+]
 
 
 class Built(NamedTuple):
@@ -53,7 +70,8 @@ class Built(NamedTuple):
         scene: the :class:`~jaxelastic.scene.load.Scene`.
         mesh: the rest mesh; mesh_data: the :class:`~jaxelastic.io.MeshData` of a mesh
             file (named sets), or None for a generator.
-        psi: the strain-energy density; params: ``Lame(mu, lam)``.
+        psi: the strain-energy density; params: ``Lame(mu, lam)``, or the parameter type
+            of a rubber/tissue model (e.g. ``MooneyRivlin``; HGO fibres per cell).
         potential: base :class:`~jaxelastic.potential.Potential` (``mass`` only in
             dynamics, ``f_ext`` only with loads or gravity).
         bc: Dirichlet data with the full prescribed displacement (statics) or at t = 0.
@@ -74,7 +92,7 @@ class Built(NamedTuple):
     mesh: Mesh
     mesh_data: MeshData | None
     psi: Callable
-    params: Lame
+    params: Any
     potential: Potential
     bc: Dirichlet
     bc_fn: Callable[[float], Dirichlet]
@@ -92,13 +110,57 @@ class Built(NamedTuple):
 # ----------------------------------------------------------------------------------------
 
 
+def _read_file_mesh(scene: Scene) -> tuple[Mesh, MeshData]:
+    """Read ``[mesh].file``, check the memory estimate of its lifted size, lift it."""
+    m = scene.spec.mesh
+    assert m.file is not None  # called for a mesh file
+    try:
+        md = read_mesh(m.file)
+    except MeshError as e:
+        empty = empty_mesh_counts(m.file)
+        if empty is not None:
+            raise scene.error(
+                f"[mesh].file: the mesh {m.file!r} is empty ({empty[0]} points, {empty[1]} "
+                "cells): export the volume mesh (triangles or tetrahedra) into it"
+            ) from None
+        raise scene.error(f"[mesh].file: {e}") from None
+    el = md.mesh.element_type
+    size = memory.file_mesh_size(
+        md.mesh.n_nodes, md.mesh.n_cells, el.dim, el.n_nodes, m.order, m.formulation
+    )
+    memory.check(scene, size)
+    try:
+        return lift_file_mesh(md, m.order, m.formulation)
+    except (MeshError, ValueError) as e:
+        raise scene.error(f"[mesh].file: {e}") from None
+
+
+def empty_mesh_counts(path: str) -> tuple[int, int] | None:
+    """``(points, cells)`` of a VTU file whose pieces hold no cell (meshio cannot parse an
+    empty VTU: "need at least one array to concatenate"), else None.
+
+    Reads only the ``<Piece NumberOfPoints=... NumberOfCells=...>`` attributes.
+    """
+    if not path.lower().endswith((".vtu", ".pvtu")):
+        return None
+    import xml.etree.ElementTree as ET
+
+    points = cells = 0
+    try:
+        for _, el in ET.iterparse(path, events=("start",)):
+            if el.tag == "Piece":
+                points += int(el.get("NumberOfPoints", "0"))
+                cells += int(el.get("NumberOfCells", "0"))
+            el.clear()
+    except (ET.ParseError, OSError, ValueError):
+        return None
+    return (points, cells) if cells == 0 else None
+
+
 def _make_mesh(scene: Scene) -> tuple[Mesh, MeshData | None]:
     m = scene.spec.mesh
     if m.file is not None:
-        try:
-            return lift_file_mesh(read_mesh(m.file), m.order, m.formulation)
-        except (MeshError, ValueError) as e:
-            raise scene.error(f"[mesh].file: {e}") from None
+        return _read_file_mesh(scene)
     kw: dict[str, Any] = dict(order=m.order or 1, formulation=m.formulation)
     n = m.n
     try:
@@ -187,9 +249,31 @@ def _user_callable(scene: Scene, key: str, spec: str) -> Callable:
         raise scene.error(f"{key}: {e}") from None
 
 
-def _material(scene: Scene, dim: int) -> tuple[Callable, Lame]:
+def _family_params(m, dtype, n_cells: int | None):
+    """The parameter pytree of a rubber/tissue model from its ``[material]`` keys (fibre
+    directions broadcast to ``(n_cells, 3)`` for the mesh)."""
+    fields = FAMILY_PARAMS[m.model]()._fields
+    vals = {k: jnp.asarray(getattr(m, k), dtype) for k in fields}
+    params = type(FAMILY_PARAMS[m.model]())(**vals)
+    if isinstance(params, HolzapfelGasserOgden) and n_cells is not None:
+        params = per_cell_fibres(params, n_cells)
+    return params
+
+
+def _material(scene: Scene, dim: int, n_cells: int | None = None) -> tuple[Callable, Any]:
+    """ψ and its parameters from ``[material]``, checked at F = I (finite ψ and P).
+
+    Args:
+        scene: the scene; dim: mesh dimension; n_cells: mesh cells (to broadcast shared
+            fibre directions of ``holzapfel_gasser_ogden``).
+    """
     m = scene.spec.material
     model = m.model
+    if model in FAMILIES:
+        psi = FAMILIES[model]
+        params = _family_params(m, jnp.zeros(()).dtype, None)
+        _check_at_identity(scene, psi, params, dim)
+        return psi, _family_params(m, jnp.zeros(()).dtype, n_cells)
     psi = BUILTIN[model] if ":" not in model else _user_callable(scene, "[material].model", model)
     if m.E is not None:
         try:
@@ -200,6 +284,14 @@ def _material(scene: Scene, dim: int) -> tuple[Callable, Lame]:
         mu, lam = m.mu, m.lam
     dtype = jnp.zeros(()).dtype
     params = Lame(jnp.asarray(mu, dtype), jnp.asarray(lam, dtype))
+    _check_at_identity(scene, psi, params, dim)
+    return psi, params
+
+
+def _check_at_identity(scene: Scene, psi, params, dim: int) -> None:
+    """Raise the scene's error unless ψ and P are finite at F = I."""
+    model = scene.spec.material.model
+    dtype = jnp.zeros(()).dtype
     try:
         F = jnp.asarray(np.eye(dim), dtype)
         val, P = _psi_and_P(psi, F, params)  # one small compile, not op-by-op dispatch
@@ -212,7 +304,6 @@ def _material(scene: Scene, dim: int) -> tuple[Callable, Lame]:
             f"[material].model {model!r} must return a finite scalar at F = I, got "
             f"shape {val.shape}, value {val}"
         )
-    return psi, params
 
 
 # ----------------------------------------------------------------------------------------
@@ -450,17 +541,20 @@ def build(scene) -> Built:
     in statics, no ``f_ext`` without loads or gravity.
 
     Raises:
-        SceneError: problems only visible with the mesh (a selection that matches no
-            node, an unknown group, wrong vector lengths for a mesh file's dimension, a
-            user function returning the wrong shape, a material failing at F = I).
+        SceneError: a mesh too large for the memory (:func:`~jaxelastic.scene.memory.check`,
+            before the mesh is generated), an empty mesh file, problems only visible with
+            the mesh (a selection that matches no node, an unknown group, wrong vector
+            lengths for a mesh file's dimension, a user function returning the wrong shape,
+            a material failing at F = I).
     """
     scene = load_scene(scene)
+    memory.check(scene)  # a generator's size is known before anything is allocated
     mesh, md = _make_mesh(scene)
     if scene.dim is None:
         problem = scene.spec.dim_problem(mesh.dim)
         if problem is not None:
             raise scene.error(problem)
-    psi, params = _material(scene, mesh.dim)
+    psi, params = _material(scene, mesh.dim, mesh.n_cells)
     bc_fn, time_dep = _dirichlet(scene, mesh, md)
     f_ext = _external_forces(scene, mesh, md)
     dtype = mesh.points.dtype

@@ -98,7 +98,10 @@ positions (`X` `(n, dim)`, or its columns `x`, `y`, `z`), evaluated by a small i
 **not** `eval`: numbers, arithmetic, comparisons (chained too), `&` `|` `^` `~` `and` `or`
 `not`, integer indexing and slicing (`X[:, 0]`), `pi`, and the NumPy functions `abs sqrt
 hypot minimum maximum sin cos arctan2 isclose logical_and logical_or logical_not` (also as
-`np.abs` ...; keywords `atol`/`rtol` only). Anything else is refused.
+`np.abs` ...; keywords `atol`/`rtol` only). Anything else is refused, and so are constants
+beyond the range of float64 (`1e999`), constant arithmetic that overflows (`9 ** 9 ** 9`)
+and floating-point errors while evaluating (overflow, division by zero, `sqrt` of a
+negative number).
 """
 
 _OUTPUTS = """\
@@ -127,10 +130,23 @@ each file written atomically:
   `dynamic.per_step` (time, Newton and CG iterations, residual, kinetic/elastic/
   load-potential/total energy), `static` (iterations, residual history, reaction force vs
   applied load), `probes`, `comparison` (static vs dynamic: max nodal distance, relative
-  to the tip deflection).
+  to the tip deflection), `status` (`ok`, `failed`, `interrupted`) and `interrupted`;
+  `dynamic.kinetic_over_elastic` is `null` when the elastic energy is zero to round-off
+  (a free body in rigid motion), and then `settle` needs the kinetic energy at round-off
+  too.
 
 `jaxelastic fit` writes `summary.json` (cases, target, initial guess, fitted values and
 their errors when the truth is known, histories), `fit.png` and `observed.npz`.
+
+Exit status: 0 success, 1 a solve failed (`summary.json` is still written), 2 an invalid
+scene or `--out`, 130 interrupted. Before anything is built, the memory a scene needs is
+estimated from its mesh size (element Hessians, the sparse pattern and factor, ...) and a
+scene that will not fit the memory available is refused with the estimate; set
+`[solver] max_memory_gb` (`--set solver.max_memory_gb=64`) to use another budget. Ctrl-C
+(SIGINT) or SIGTERM stops a run at the next time step or load increment (a fit's optimiser
+at once; a second signal stops at once too): the last completed state is written, the
+`.pvd` lists only the files written, `summary.json` has `"interrupted": true` and what was
+`completed`, and temporaries are removed.
 """
 
 

@@ -24,17 +24,25 @@ import numpy as np
 from .. import fitting
 from ..materials import Lame, lame
 from ..solvers import GradientError, SolveError
+from . import interrupt, memory
 from .build import Built, build, newton_of
 from .errors import SceneError
+from .interrupt import Interrupted
 from .load import Scene, load_scene
-from .outputs import log, prepare_out, save_npz, save_png, write_summary
+from .outputs import (
+    FIT_OUTPUTS,
+    log,
+    prepare_out,
+    remove_temporaries,
+    save_npz,
+    save_png,
+    write_summary,
+)
 from .run import static_solve
 from .schema import FitCase, FitSpec
 from .where import where_mask
 
 __all__ = ["run_fit", "region_labels", "read_observed", "highlights"]
-
-_OUTPUTS = ("summary.json", "fit.png", "observed.npz")
 
 
 # ----------------------------------------------------------------------------------------
@@ -301,7 +309,7 @@ def _prepare(scene: Scene, out_dir) -> str:
     cfg = _fit_spec(scene)
     obs = [os.path.join(scene.base_dir, c.observed) for c in (cfg, *cfg.case) if c.observed]
     out = prepare_out(out_dir, scene)
-    for name in _OUTPUTS:
+    for name in FIT_OUTPUTS:
         p = os.path.join(out, name)
         if any(q and os.path.abspath(q) == p for q in [scene.source, *obs]):
             raise scene.error(f"refusing to overwrite the input {p!r}; choose another --out")
@@ -347,7 +355,10 @@ def _fit_and_write(scene, out, cases, markers, arrays, labels, n_reg, progress, 
         "jaxelastic fit",
     )
     t0 = time.perf_counter()
-    res = _fit(scene, cases, labels, n_reg, progress)
+    summary["completed"] = "the observations; interrupted during the optimiser"
+    with interrupt.immediate():  # the optimiser has no step boundary to stop at
+        res = _fit(scene, cases, labels, n_reg, progress)
+    del summary["completed"]
     summary["timings"]["fit_incl_compile"] = time.perf_counter() - t0
     summary["result"], summary["history"] = _result(res, summary["target"], labels, n_reg)
     t0 = time.perf_counter()
@@ -376,9 +387,15 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
         SceneError: invalid scene, no ``[fit]`` section, bad observation files.
         SolveError / GradientError: the target solve or a fit solve failed (the summary is
             still written with ``"status": "failed"``).
+        Interrupted: SIGINT/SIGTERM (under
+            :func:`~jaxelastic.scene.interrupt.handle_signals`) or Ctrl-C: the build and
+            the optimiser stop at once, a target solve at its next load increment; the
+            summary says ``"interrupted": true`` and what was ``completed`` (no fitted
+            values: :func:`jaxelastic.fitting.fit` has no stop callback yet).
     """
     t_start = time.perf_counter()
     scene = load_scene(scene)
+    memory.check(scene)  # before the output directory is created
     out = _prepare(scene, out_dir)
     summary: dict[str, Any] = dict(
         scene=scene.to_dict(), scene_file=scene.source, status="running", timings={}
@@ -386,7 +403,10 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
     path = os.path.join(out, "summary.json")
     try:
         t0 = time.perf_counter()
-        builts = [build(s) for s in _case_scenes(scene)]
+        summary["completed"] = "nothing; interrupted during the build"
+        with interrupt.immediate():
+            builts = [build(s) for s in _case_scenes(scene)]
+        summary["completed"] = "the build; interrupted during the target solves"
         mesh = builts[0].mesh
         summary["mesh"] = dict(
             dim=mesh.dim, n_nodes=mesh.n_nodes, n_cells=mesh.n_cells, element=mesh.element
@@ -396,13 +416,28 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
         cases, markers, arrays = _observe(scene, builts, labels, n_reg, progress, summary)
         _fit_and_write(scene, out, cases, markers, arrays, labels, n_reg, progress, summary)
     except (SolveError, GradientError) as e:
-        summary.update(status="failed", error=f"{type(e).__name__}: {e}")
+        summary.pop("completed", None)
+        summary.update(status="failed", error=f"{type(e).__name__}: {e}", interrupted=False)
         summary["timings"]["total"] = time.perf_counter() - t_start
         write_summary(path, summary)
         raise
-    summary["status"] = "ok"
+    except KeyboardInterrupt as e:
+        raise _interrupted(e, out, path, summary, t_start) from None
+    summary.update(status="ok", interrupted=False)
     summary["timings"]["total"] = time.perf_counter() - t_start
     return write_summary(path, summary)
+
+
+def _interrupted(e: KeyboardInterrupt, out: str, path: str, summary: dict, t_start: float):
+    """Write the summary of a stopped fit, remove temporaries; the Interrupted to raise."""
+    name = e.signame if isinstance(e, Interrupted) else "KeyboardInterrupt"
+    completed = summary.pop("completed", "nothing")
+    with interrupt.shield():
+        summary.update(status="interrupted", interrupted=True, signal=name, completed=completed)
+        summary["timings"]["total"] = time.perf_counter() - t_start
+        write_summary(path, summary)
+        remove_temporaries(out)
+    return Interrupted(name, f"after {completed} (no fitted values)", out)
 
 
 # ----------------------------------------------------------------------------------------

@@ -140,7 +140,7 @@ def read_toml(source) -> tuple[dict, str]:
     """``(raw dict, absolute path)`` of a scene file or shipped scene name.
 
     Raises:
-        SceneError: no such file, not UTF-8, or invalid TOML.
+        SceneError: no such file, a directory, not UTF-8, or invalid TOML.
     """
     path = os.fspath(source)
     shipped = shipped_scenes()
@@ -148,6 +148,13 @@ def read_toml(source) -> tuple[dict, str]:
         path = shipped[path.removesuffix(".toml")]
     path = os.path.abspath(path)
     label = os.path.basename(path)
+    if os.path.isdir(path):
+        inside = sorted(f for f in os.listdir(path) if f.endswith(".toml"))[:5]
+        hint = f" (scene files in it: {', '.join(inside)})" if inside else ""
+        raise SceneError(
+            f"scene {os.fspath(source)!r}: is a directory, not a scene file; give a scene "
+            f"TOML file{hint}"
+        )
     if not os.path.isfile(path):
         raise SceneError(
             f"scene {os.fspath(source)!r}: no such file (shipped scenes: "

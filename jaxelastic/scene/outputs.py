@@ -9,6 +9,7 @@ mesh, an observation file) has the name of an output.
 from __future__ import annotations
 
 import contextlib
+import errno
 import fnmatch
 import os
 import re
@@ -29,8 +30,11 @@ from .schema import DynamicIntegrator
 
 __all__ = [
     "OUTPUT_PATTERNS",
+    "FIT_OUTPUTS",
     "log",
     "prepare_out",
+    "make_out_dir",
+    "remove_temporaries",
     "remove_stale",
     "save_png",
     "save_npz",
@@ -55,6 +59,8 @@ OUTPUT_PATTERNS = (
     "energy.png",
 )
 """Names of the files a run writes (an input with one of them in ``--out`` is refused)."""
+FIT_OUTPUTS = ("summary.json", "fit.png", "observed.npz")
+"""Names of the files a fit writes."""
 
 
 def log(progress: bool, msg: str, prefix: str = "jaxelastic") -> None:
@@ -69,8 +75,12 @@ def prepare_out(out_dir, scene: Scene, inputs=()) -> str:
     Args:
         out_dir: the directory (``--out``); scene: the scene (its file and mesh file are
             inputs); inputs: more input files (observations).
+    Temporaries of outputs left by a killed run (``.summary.json.XXXXXXXX.tmp``) are
+    removed.
+
     Raises:
-        SceneError: ``out_dir`` is a file, or an input would be overwritten by an output.
+        SceneError: ``out_dir`` is a file, cannot be created or is not writable, or an
+            input would be overwritten by an output.
     """
     out = os.path.abspath(os.fspath(out_dir))
     if os.path.exists(out) and not os.path.isdir(out):
@@ -86,8 +96,53 @@ def prepare_out(out_dir, scene: Scene, inputs=()) -> str:
                 f"refusing to write into {out!r}: the input {p!r} has the name of an output "
                 "file and would be overwritten; choose another --out"
             )
-    os.makedirs(out, exist_ok=True)
+    make_out_dir(out, os.fspath(out_dir))
+    remove_temporaries(out)
     return out
+
+
+def make_out_dir(out: str, given: str) -> None:
+    """Create the output directory ``out`` (absolute; ``given``: as the user wrote it).
+
+    Raises:
+        SceneError: it cannot be created (naming the first missing directory, its
+            nearest existing parent and the system's reason) or is not writable.
+    """
+    try:
+        os.makedirs(out, exist_ok=True)
+    except OSError as e:
+        missing = out  # the first directory on the path that does not exist
+        while not os.path.exists(os.path.dirname(missing)) and os.path.dirname(missing) != missing:
+            missing = os.path.dirname(missing)
+        parent = os.path.dirname(missing)
+        if os.path.exists(parent) and not os.path.isdir(parent):
+            why = f"{parent!r} is a file, not a directory"
+        elif e.errno == errno.ENOENT and os.path.isdir(parent):  # e.g. /proc, /sys
+            why = f"{parent!r} does not accept new directories: {e.strerror}"
+        else:
+            why = f"creating {missing!r} in {parent!r} failed: {e.strerror or e}"
+        raise SceneError(
+            f"--out {given!r}: cannot create the output directory ({why}); choose a "
+            "writable location"
+        ) from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise SceneError(f"--out {given!r}: the output directory {out!r} is not writable")
+
+
+def remove_temporaries(out: str) -> list[str]:
+    """Delete the temporaries of :func:`~jaxelastic.io.write_atomic` for output files
+    (``.summary.json.XXXXXXXX.tmp``, ``.dynamic_0003.vtu.XXXXXXXX.tmp``, …) left in ``out``
+    by an interrupted or killed run; returns the names removed."""
+    removed = []
+    for name in os.listdir(out):
+        if not (name.startswith(".") and name.endswith(".tmp")):
+            continue
+        target = name[1:].rsplit(".", 2)[0]  # ".<target>.<random>.tmp"
+        if any(fnmatch.fnmatch(target, pat) for pat in (*OUTPUT_PATTERNS, *FIT_OUTPUTS)):
+            with contextlib.suppress(OSError):
+                os.remove(os.path.join(out, name))
+                removed.append(name)
+    return removed
 
 
 def remove_stale(out: str, basename: str, count: int) -> None:
@@ -161,6 +216,17 @@ def reaction_report(built: Built, x, bc: Dirichlet) -> dict:
     return dict(reaction_force=np.asarray(r).tolist(), total_applied_load=total.tolist())
 
 
+def _material_constants(params) -> dict:
+    """The scalar material constants for the summary: ``mu, lam`` of a Lamé model, every
+    scalar field of a rubber/tissue parameter type (fibre directions left out)."""
+    out = {}
+    for k, v in params._asdict().items():
+        a = np.asarray(v)
+        if a.ndim == 0:
+            out[k] = float(a)
+    return out
+
+
 def run_header(built: Built, out: str) -> dict:
     """The start of a run's summary: scene, mesh, material, solver, output paths."""
     scene, mesh = built.scene, built.mesh
@@ -177,12 +243,7 @@ def run_header(built: Built, out: str) -> dict:
             formulation=mesh.formulation,
             n_dirichlet_dofs=int(np.asarray(built.bc.mask).sum()),
         ),
-        material=dict(
-            model=mat.model,
-            mu=float(built.params.mu),
-            lam=float(built.params.lam),
-            density=mat.density,
-        ),
+        material=dict(model=mat.model, **_material_constants(built.params), density=mat.density),
         solver=scene.spec.solver.model_dump(),
         integrator=None if built.integrator is None else built.integrator._asdict(),
         timings={},
@@ -195,9 +256,16 @@ def run_header(built: Built, out: str) -> dict:
 # ----------------------------------------------------------------------------------------
 
 
+def vtu_plane(built: Built) -> str:
+    """The 2D assumption for the out-of-plane stress in VTU fields: the material's
+    ``plane`` (``"strain"`` unless the scene says ``"stress"``)."""
+    return getattr(built.scene.spec.material, "plane", None) or "strain"
+
+
 def write_static_vtu(built: Built, out: str, t: float, x) -> str:
     """``static.pvd`` + ``static_0000.vtu`` of the static solution; returns the pvd path."""
-    with TimeSeriesWriter(out, "static", built.mesh, built.psi, built.params) as w:
+    plane = vtu_plane(built)
+    with TimeSeriesWriter(out, "static", built.mesh, built.psi, built.params, plane=plane) as w:
         w.write(t, x)
     remove_stale(out, "static", 1)
     return w.pvd_path

@@ -22,7 +22,9 @@ from .. import dynamics
 from ..io import TimeSeriesWriter
 from ..loads import Dirichlet
 from ..solvers import Solution, SolveError, solve_incremental
+from . import interrupt, memory
 from .build import Built, build
+from .interrupt import Interrupted
 from .load import load_scene
 from .outputs import (
     dynamic_figures,
@@ -32,14 +34,44 @@ from .outputs import (
     probe_report,
     reaction_report,
     remove_stale,
+    remove_temporaries,
     run_header,
     static_figure,
+    vtu_plane,
     write_static_vtu,
     write_summary,
 )
 from .schema import DynamicIntegrator, StaticIntegrator
 
-__all__ = ["run_scene", "static_solve"]
+__all__ = ["run_scene", "static_solve", "settle_ratio", "ROUNDOFF_ENERGY"]
+
+ROUNDOFF_ENERGY = 1e-12
+"""An energy at most this fraction of the run's energy scale (the largest kinetic +
+|elastic| + |external| energy so far) counts as zero (see :func:`settle_ratio`)."""
+
+
+def settle_ratio(kinetic: float, elastic: float, scale: float) -> float | None:
+    """Kinetic over elastic energy, or None where the elastic energy is zero to round-off.
+
+    A free body in rigid motion (or at rest without load) has no elastic energy: its ratio
+    is undefined (the plain quotient is 1e29 or inf), so it is None (``null`` in
+    ``summary.json``) when ``|elastic| <= ROUNDOFF_ENERGY * scale``.
+
+    Args:
+        kinetic, elastic: energies of a state [J]; scale: the run's energy scale [J].
+    """
+    if not abs(elastic) > ROUNDOFF_ENERGY * scale:
+        return None
+    return float(kinetic) / abs(float(elastic))
+
+
+def _at_rest(kinetic: float, elastic: float, scale: float, tol: float) -> bool:
+    """The settle test of one step: kinetic < tol × |elastic|; where the elastic energy is
+    zero to round-off, kinetic must be zero to round-off too (no division)."""
+    floor = ROUNDOFF_ENERGY * scale
+    if abs(elastic) > floor:
+        return kinetic < tol * abs(elastic)
+    return kinetic <= floor
 
 
 # ----------------------------------------------------------------------------------------
@@ -48,7 +80,11 @@ __all__ = ["run_scene", "static_solve"]
 
 
 def static_solve(
-    built: Built, *, bc: Dirichlet | None = None, what: str = "static solve"
+    built: Built,
+    *,
+    bc: Dirichlet | None = None,
+    what: str = "static solve",
+    callback=None,
 ) -> tuple[Any, list[dict], Solution]:
     """Newton with ``[integrator].load_steps`` increments and cut-back on failure.
 
@@ -57,6 +93,8 @@ def static_solve(
         bc: fixed Dirichlet data (the dynamic comparison); default ``built.bc_fn(s)`` at
             each load factor ``s``.
         what: names the solve in the error message.
+        callback: ``callback(s, solution)`` after every converged increment (default:
+            :func:`~jaxelastic.scene.interrupt.check`, which stops there on SIGINT/SIGTERM).
     Returns:
         ``(x (n_nodes, dim), per-increment stats, solution of the last increment)``.
     Raises:
@@ -73,6 +111,7 @@ def static_solve(
         steps=n,
         path=path,
         throw=False,
+        callback=callback or (lambda s, sol: interrupt.check()),
     )
     stats = [
         dict(
@@ -92,14 +131,9 @@ def static_solve(
     return sol.x, stats, sol
 
 
-def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
-    ocfg = built.scene.spec.output
-    log(progress, "static solve (the first solve includes compilation) ...")
-    t0 = time.perf_counter()
-    x, stats, sol = static_solve(built)
-    summary["timings"]["solve_incl_compile"] = time.perf_counter() - t0
+def _static_report(built: Built, x, stats: list[dict], sol: Solution) -> dict:
     steps = int(sol.stats["steps"])
-    summary["static"] = dict(
+    return dict(
         load_steps=stats,
         newton_steps=sum(s["newton_steps"] for s in stats),
         linear_iterations=sum(s["linear_iterations"] for s in stats),
@@ -109,13 +143,67 @@ def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
         max_displacement=float(np.linalg.norm(np.asarray(x) - built.x0, axis=1).max()),
         **reaction_report(built, x, built.bc),
     )
+
+
+def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
+    ocfg = built.scene.spec.output
+    log(progress, "static solve (the first solve includes compilation) ...")
+    done: list[tuple[float, Solution]] = []
+
+    def on_increment(s: float, sol: Solution) -> None:
+        done.append((s, sol))
+        interrupt.check()  # stop at this increment on SIGINT/SIGTERM
+
+    t0 = time.perf_counter()
+    try:
+        x, stats, sol = static_solve(built, callback=on_increment)
+    except KeyboardInterrupt as e:
+        summary["timings"]["solve_incl_compile"] = time.perf_counter() - t0
+        _static_partial(built, out, done, summary)
+        raise Interrupted(_signame(e), _static_detail(built, done)) from None
+    summary["timings"]["solve_incl_compile"] = time.perf_counter() - t0
+    summary["static"] = _static_report(built, x, stats, sol)
     summary["probes"] = probe_report(built, x)
     t0 = time.perf_counter()
     if ocfg.vtu:
         summary["outputs"]["pvd"] = write_static_vtu(built, out, 1.0, x)
     if ocfg.png:
+        interrupt.check("after the static solve")
         summary["outputs"]["png"].append(static_figure(built, out, x))
     summary["timings"]["outputs"] = time.perf_counter() - t0
+
+
+def _static_detail(built: Built, done: list) -> str:
+    if not done:
+        return "before the first load increment converged"
+    return f"at load factor {done[-1][0]:.4g} ({len(done)} converged increment(s))"
+
+
+def _static_partial(built: Built, out: str, done: list, summary: dict) -> None:
+    """The summary entries and the VTU of the last converged increment of a stopped run."""
+    with interrupt.shield():
+        if not done:
+            return
+        s, sol = done[-1]
+        summary["static"] = dict(
+            load_factor=s,
+            completed_increments=[
+                dict(
+                    load_factor=si,
+                    newton_steps=int(so.stats["steps"]),
+                    residual=float(so.stats["residual"]),
+                )
+                for si, so in done
+            ],
+            elastic_energy=elastic_energy(built, sol.x),
+        )
+        summary["probes"] = probe_report(built, sol.x)
+        if built.scene.spec.output.vtu:
+            summary["outputs"]["pvd"] = write_static_vtu(built, out, s, sol.x)
+
+
+def _signame(e: BaseException) -> str:
+    return e.signame if isinstance(e, Interrupted) else "KeyboardInterrupt"
 
 
 # ----------------------------------------------------------------------------------------
@@ -125,8 +213,9 @@ def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
 
 class _Monitor:
     """The ``simulate`` callback of a dynamic scene: keeps the last state and the tip
-    displacement, writes the VTU series every ``[output].every`` steps, and stops once
-    kinetic < settle_tol × elastic energy for ``settle_steps`` consecutive steps."""
+    displacement, writes the VTU series every ``[output].every`` steps, stops once the
+    settle test (:func:`_at_rest`) holds for ``settle_steps`` consecutive steps, and stops
+    at the step boundary after a SIGINT/SIGTERM."""
 
     def __init__(self, built: Built, writer: TimeSeriesWriter | None, n_steps: int):
         self.built, self.writer, self.n_steps = built, writer, n_steps
@@ -138,13 +227,16 @@ class _Monitor:
         self.records: list[dict] = []
         self.tip_u = [np.zeros(built.mesh.dim)]
         self.n = self.below = self.last_written = 0
+        self.scale = 0.0  # the largest kinetic + |elastic| + |external| energy so far
         self.settled_at: float | None = None
         self.t_out = 0.0
 
     def write(self, t: float, state) -> None:
         assert self.writer is not None  # called only when there is a writer
         t0 = time.perf_counter()
-        self.writer.write(t, state.x, velocity=np.asarray(state.v))
+        steps = self.writer.steps
+        if not (steps and steps[-1][0] == float(t)):  # not written yet (an interrupted write)
+            self.writer.write(t, state.x, velocity=np.asarray(state.v))
         self.t_out += time.perf_counter() - t0
         self.last_written = self.n
 
@@ -154,55 +246,79 @@ class _Monitor:
         self.records.append(record)
         tip, X = self.built.tip, np.asarray(self.built.x0)
         self.tip_u.append(np.asarray(state.x)[tip] - X[tip])
-        ratio = record["kinetic"] / max(abs(record["elastic"]), np.finfo(float).tiny)
-        self.below = self.below + 1 if ratio < self.cfg.settle_tol else 0
+        ke, el = float(record["kinetic"]), float(record["elastic"])
+        self.scale = max(self.scale, ke + abs(el) + abs(float(record["external"])))
+        rest = _at_rest(ke, el, self.scale, self.cfg.settle_tol)
+        self.below = self.below + 1 if rest else 0
         done = self.cfg.settle and self.below >= self.cfg.settle_steps
-        if self.writer is not None and (self.n % self.every == 0 or done or self.n == self.n_steps):
+        stop = interrupt.requested() is not None
+        last = self.n % self.every == 0 or done or stop or self.n == self.n_steps
+        if self.writer is not None and last:
             self.write(record["t"], state)
         if done:
             self.settled_at = record["t"]
-        return done
+        return done or stop
 
 
 def _simulate(built: Built, out: str, progress: bool, summary: dict):
-    """Run the time steps; returns ``(monitor, failure or None)``."""
+    """Run the time steps; returns ``(monitor, failure or None, Interrupted or None)``."""
     pot, integ, cfg = built.potential, built.integrator, built.scene.spec.integrator
     assert integ is not None and isinstance(cfg, DynamicIntegrator)  # a dynamic scene
     n_steps = max(1, math.ceil(cfg.duration / integ.h - 1e-9))
     writer = None
     if built.scene.spec.output.vtu:
-        writer = TimeSeriesWriter(out, "dynamic", built.mesh, built.psi, built.params)
+        writer = TimeSeriesWriter(
+            out, "dynamic", built.mesh, built.psi, built.params, plane=vtu_plane(built)
+        )
     mon = _Monitor(built, writer, n_steps)
-    if writer is not None:
-        mon.write(0.0, mon.state)
     log(progress, f"{n_steps} time steps of h = {integ.h:g} s (the first includes compilation)")
     bc = built.bc_fn if built.time_dependent else built.bc
-    failure = None
+    failure = stopped = None
     t0 = time.perf_counter()
     try:
+        if writer is not None:
+            mon.write(0.0, mon.state)
         dynamics.simulate(
             pot, mon.state, bc, integ, n_steps, solver=built.solver, callback=mon, progress=progress
         )
     except SolveError as e:
         failure = e
-        st = e.solution.stats
-        summary["failed_step"] = dict(
-            step=mon.n + 1,
-            t=(mon.n + 1) * integ.h,
-            status=e.status.name,
-            newton_steps=int(st["steps"]),
-            linear_iterations=int(st["linear_iterations"]),
-            residual=float(st["residual"]),
-        )
+        summary["failed_step"] = _failed_step(e, mon.n, integ.h)
+    except KeyboardInterrupt as e:  # a second signal, or Ctrl-C without the CLI's handlers
+        stopped = Interrupted(_signame(e))
+    if stopped is None and interrupt.requested() is not None:
+        stopped = Interrupted(interrupt.requested() or "SIGINT")
     summary["timings"]["time_loop_total"] = time.perf_counter() - t0
-    if writer is not None:
-        if mon.last_written != mon.n:
-            mon.write(mon.records[-1]["t"], mon.state)
-        writer.close()
-        remove_stale(out, "dynamic", len(writer.steps))
-        summary["outputs"]["pvd"] = writer.pvd_path
-        summary["outputs"]["vtu_files"] = len(writer.steps)
-    return mon, failure
+    if stopped is not None:
+        t = mon.records[-1]["t"] if mon.records else 0.0
+        stopped.detail = f"after {mon.n} of {n_steps} time steps (t = {t:.6g} s)"
+    with interrupt.shield():
+        _close_series(mon, writer, out, summary)
+    return mon, failure, stopped
+
+
+def _failed_step(e: SolveError, n_done: int, h: float) -> dict:
+    st = e.solution.stats
+    return dict(
+        step=n_done + 1,
+        t=(n_done + 1) * h,
+        status=e.status.name,
+        newton_steps=int(st["steps"]),
+        linear_iterations=int(st["linear_iterations"]),
+        residual=float(st["residual"]),
+    )
+
+
+def _close_series(mon: _Monitor, writer: TimeSeriesWriter | None, out: str, summary: dict):
+    """Write the last state if it was not, the final ``.pvd``; drop stale VTU files."""
+    if writer is None:
+        return
+    if mon.last_written != mon.n or not writer.steps:
+        mon.write(mon.records[-1]["t"] if mon.records else 0.0, mon.state)
+    writer.close()
+    remove_stale(out, "dynamic", len(writer.steps))
+    summary["outputs"]["pvd"] = writer.pvd_path
+    summary["outputs"]["vtu_files"] = len(writer.steps)
 
 
 def _per_step(built: Built, records: list[dict]) -> dict:
@@ -230,12 +346,16 @@ def _dynamic_summary(built: Built, mon: _Monitor, per: dict, summary: dict) -> N
         steps_total=float(sum(walls)),
     )
     X = np.asarray(built.x0)
+    scale = max(
+        abs(a) + abs(b) + abs(c)
+        for a, b, c in zip(per["kinetic"], per["elastic"], per["external"], strict=True)
+    )
     summary["dynamic"] = dict(
         steps=mon.n,
         t_end=per["t"][-1],
         settled=mon.settled_at is not None,
         settle_time=mon.settled_at,
-        kinetic_over_elastic=per["kinetic"][-1] / max(abs(per["elastic"][-1]), 1e-300),
+        kinetic_over_elastic=settle_ratio(per["kinetic"][-1], per["elastic"][-1], scale),
         newton_steps_total=int(sum(per["newton_steps"])),
         linear_iterations_total=int(sum(per["linear_iterations"])),
         final_residual=per["residual"][-1] if mon.n else None,
@@ -285,15 +405,20 @@ def _compare_static(built: Built, out: str, progress: bool, mon: _Monitor, summa
 
 
 def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
-    mon, failure = _simulate(built, out, progress, summary)
-    per = _per_step(built, mon.records)
-    _dynamic_summary(built, mon, per, summary)
+    mon, failure, stopped = _simulate(built, out, progress, summary)
+    with interrupt.shield():
+        per = _per_step(built, mon.records)
+        _dynamic_summary(built, mon, per, summary)
+    if stopped is not None:
+        summary["timings"]["outputs"] = mon.t_out
+        raise stopped
     x_static = None
     cfg = built.scene.spec.integrator
     assert isinstance(cfg, DynamicIntegrator)  # a dynamic scene
     if cfg.compare_static and failure is None:
         x_static = _compare_static(built, out, progress, mon, summary)
     if built.scene.spec.output.png and mon.n:
+        interrupt.check("after the time steps")
         t0 = time.perf_counter()
         paths = dynamic_figures(built, out, per, mon.tip_u, mon.state.x, x_static)
         summary["outputs"]["png"] += paths
@@ -312,24 +437,35 @@ def run_scene(scene, out_dir, progress: bool = True) -> dict:
     """Solve a scene and write its outputs into ``out_dir``; returns the summary dict.
 
     Writes (each file atomically): ``summary.json`` (the scene, timings, Newton and CG
-    iterations and energies per step, final residual, probes, static/dynamic difference);
-    with ``[output].vtu`` a ParaView series ``dynamic.pvd`` + ``dynamic_NNNN.vtu`` and/or
-    ``static.pvd`` + ``static_0000.vtu`` (displacement, velocity, J, Green strain, P,
-    von Mises stress, energy density); with ``[output].png`` ``final_shape.png`` and, for
-    dynamics, ``tip_displacement.png`` and ``energy.png``. ``out_dir`` is created; a
-    path that is a file is refused, and so is an input file (scene, mesh) that an output
-    would overwrite.
+    iterations and energies per step, final residual, probes, static/dynamic difference,
+    ``interrupted``); with ``[output].vtu`` a ParaView series ``dynamic.pvd`` +
+    ``dynamic_NNNN.vtu`` and/or ``static.pvd`` + ``static_0000.vtu`` (displacement,
+    velocity, J, Green strain, P, von Mises stress, energy density); with ``[output].png``
+    ``final_shape.png`` and, for dynamics, ``tip_displacement.png`` and ``energy.png``.
+    ``out_dir`` is created; a path that is a file is refused, and so is an input file
+    (scene, mesh) that an output would overwrite. ``dynamic.kinetic_over_elastic`` is
+    ``null`` where the elastic energy is zero to round-off (:func:`settle_ratio`).
+
+    Interruptions (SIGINT/SIGTERM under :func:`~jaxelastic.scene.interrupt.handle_signals`,
+    or Ctrl-C): the run stops at the next time step or load increment, writes the VTU of
+    the last completed state, a ``.pvd`` listing only the files written and a summary with
+    ``"status": "interrupted"``, ``"interrupted": true``, the signal and what was
+    completed (no PNGs, no static comparison), removes temporaries, and raises
+    :class:`~jaxelastic.scene.interrupt.Interrupted`.
 
     Args:
         scene: a :class:`~jaxelastic.scene.load.Scene`, a TOML path, a shipped name or a
             dict; out_dir: output directory; progress: progress bar and messages.
     Raises:
-        SceneError: invalid scene or output directory.
+        SceneError: invalid scene or output directory, or a mesh too large for the memory
+            (checked before anything is allocated, see :mod:`jaxelastic.scene.memory`).
         SolveError: a Newton solve failed (``summary.json`` is still written, with
             ``"status": "failed"`` and the error).
+        Interrupted: stopped by a signal (the partial outputs are written).
     """
     t_start = time.perf_counter()
     scene = load_scene(scene)
+    memory.check(scene)  # before the output directory is created
     out = prepare_out(out_dir, scene)
     if jnp.zeros(()).dtype != jnp.float64:
         warnings.warn(
@@ -338,18 +474,38 @@ def run_scene(scene, out_dir, progress: bool = True) -> dict:
             UserWarning,
             stacklevel=2,
         )
-    t0 = time.perf_counter()
-    built = build(scene)
-    summary = run_header(built, out)
-    summary["timings"]["build"] = time.perf_counter() - t0
     path = os.path.join(out, "summary.json")
+    summary: dict[str, Any] = dict(scene=scene.to_dict(), scene_file=scene.source, timings={})
     try:
+        t0 = time.perf_counter()
+        with interrupt.immediate():  # no step boundary inside a build
+            built = build(scene)
+        summary = run_header(built, out)
+        summary["timings"]["build"] = time.perf_counter() - t0
         (_run_static if scene.static else _run_dynamic)(built, out, progress, summary)
     except SolveError as e:
-        summary.update(status="failed", error=str(e))
+        summary.update(status="failed", error=str(e), interrupted=False)
         summary["timings"]["total"] = time.perf_counter() - t_start
         write_summary(path, summary)
         raise
-    summary["status"] = "ok"
+    except KeyboardInterrupt as e:
+        raise _interrupted(e, out, path, summary, t_start) from None
+    summary.update(status="ok", interrupted=False)
     summary["timings"]["total"] = time.perf_counter() - t_start
     return write_summary(path, summary)
+
+
+def _interrupted(e: KeyboardInterrupt, out: str, path: str, summary: dict, t_start: float):
+    """Write the summary of a stopped run, remove temporaries; the Interrupted to raise."""
+    stop = e if isinstance(e, Interrupted) else Interrupted(_signame(e))
+    if not stop.detail:
+        stop.detail = "during the build" if "mesh" not in summary else "before the first step"
+    stop.out = out
+    with interrupt.shield():
+        summary.update(
+            status="interrupted", interrupted=True, signal=stop.signame, completed=stop.detail
+        )
+        summary["timings"]["total"] = time.perf_counter() - t_start
+        write_summary(path, summary)
+        remove_temporaries(out)
+    return stop

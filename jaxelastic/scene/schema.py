@@ -36,7 +36,7 @@ from pydantic import (
     model_validator,
 )
 
-from ..materials import BUILTIN
+from ..materials import BUILTIN, FAMILIES, FAMILY_PARAMS
 from ..mesh import FORMULATIONS
 from .callables import CallableSpecError, import_callable, n_positional
 from .errors import SceneError, fail, from_validation_error, type_name
@@ -293,6 +293,8 @@ class MeshSpec(Table):
         if v is None:
             return v
         path = os.path.normpath(os.path.join(_base_dir(info), os.path.expanduser(v)))
+        if os.path.isdir(path):
+            raise fail(f"{{at}}: {path!r} is a directory, not a mesh file")
         if not os.path.isfile(path):
             raise fail(f"{{at}}: no such mesh file {path!r}")
         return path
@@ -315,12 +317,21 @@ class MeshSpec(Table):
 # ----------------------------------------------------------------------------------------
 
 
+_MODEL_NAMES = [*BUILTIN, *FAMILIES]
+
+FAMILY_KEYS = {name: tuple(f()._fields) for name, f in FAMILY_PARAMS.items()}
+"""Rubber/tissue model name → its ``[material]`` parameter keys (the fields of its
+parameter type, e.g. ``("c10", "c01", "kappa")`` for ``mooney_rivlin``), all required."""
+
+_FAMILY_POSITIVE = frozenset({"c10", "kappa", "Jm", "lambda_m", "k2", "bulk", "mu"})
+
+
 def _material_model(v: str, info: ValidationInfo) -> str:
     if ":" in v:
         return _importable(v, info)
-    if v not in BUILTIN:
+    if v not in BUILTIN and v not in FAMILIES:
         raise fail(
-            f"{{at}}: unknown material {v!r} (built-in: {', '.join(BUILTIN)}; or "
+            f"{{at}}: unknown material {v!r} (built-in: {', '.join(_MODEL_NAMES)}; or "
             "'module:function' for your own psi(F, params))"
         )
     return v
@@ -331,7 +342,7 @@ MaterialModel = Annotated[
     Strict(),
     AfterValidator(_material_model),
     WithJsonSchema(
-        {"anyOf": [{"enum": list(BUILTIN)}, {"type": "string", "pattern": CALLABLE_PATTERN}]}
+        {"anyOf": [{"enum": _MODEL_NAMES}, {"type": "string", "pattern": CALLABLE_PATTERN}]}
     ),
 ]
 
@@ -340,8 +351,11 @@ class MaterialSpec(Table):
     """The material: a strain-energy density and its elastic parameters."""
 
     model: MaterialModel = Field(
-        description="a built-in psi (" + ", ".join(BUILTIN) + ') or "module:function" for '
-        "your own psi(F, params), which receives params = Lame(mu, lam)"
+        description="a built-in psi (" + ", ".join(_MODEL_NAMES) + ') or "module:function" '
+        "for your own psi(F, params), which receives params = Lame(mu, lam). The Lamé models "
+        "take E, nu or mu, lam; the rubber/tissue models (" + ", ".join(FAMILIES) + ") take "
+        "their own keys instead, all required: "
+        + "; ".join(f"{n}: {', '.join(k)}" for n, k in FAMILY_KEYS.items())
     )
     E: Positive | None = Field(default=None, description="Young's modulus [Pa] (with nu)")
     nu: Annotated[Number, Field(gt=-1, lt=0.5)] | None = Field(
@@ -359,9 +373,36 @@ class MaterialSpec(Table):
     density: Positive | None = Field(
         default=None, description="[kg/m^3]; required for dynamics and gravity"
     )
+    c10: Number | None = Field(default=None, description="[Pa] Mooney–Rivlin, Yeoh (> 0)")
+    c01: Number | None = Field(default=None, description="[Pa] Mooney–Rivlin")
+    c20: Number | None = Field(default=None, description="[Pa] Yeoh")
+    c30: Number | None = Field(default=None, description="[Pa] Yeoh")
+    kappa: Number | None = Field(
+        default=None, description="bulk modulus [Pa] of the rubber models (> 0)"
+    )
+    mu1: Number | None = Field(default=None, description="[Pa] Ogden")
+    mu2: Number | None = Field(default=None, description="[Pa] Ogden")
+    mu3: Number | None = Field(default=None, description="[Pa] Ogden")
+    alpha1: Number | None = Field(default=None, description="Ogden exponent")
+    alpha2: Number | None = Field(default=None, description="Ogden exponent")
+    alpha3: Number | None = Field(default=None, description="Ogden exponent")
+    Jm: Number | None = Field(default=None, description="Gent limit of I1bar - 3 (> 0)")
+    lambda_m: Number | None = Field(default=None, description="Arruda–Boyce locking stretch (> 0)")
+    k1: Number | None = Field(default=None, description="[Pa] HGO fibre stiffness (>= 0)")
+    k2: Number | None = Field(default=None, description="HGO fibre stiffening (> 0)")
+    kappa_dispersion: Number | None = Field(
+        default=None, description="HGO fibre dispersion, in [0, 1/3]"
+    )
+    bulk: Number | None = Field(default=None, description="[Pa] HGO bulk modulus (> 0)")
+    a01: Vector | None = Field(
+        default=None, description="HGO first fibre direction (reference), e.g. [1, 0, 0]"
+    )
+    a02: Vector | None = Field(default=None, description="HGO second fibre direction")
 
     @model_validator(mode="after")
     def _one_pair(self):
+        if self.model in FAMILIES:
+            return self._family_keys()
         has_E = self.E is not None or self.nu is not None
         has_mu = self.mu is not None or self.lam is not None
         if has_E == has_mu:
@@ -375,7 +416,41 @@ class MaterialSpec(Table):
             raise fail(f"{{at}}.lam must be > -mu (a positive bulk modulus), got {lam!r}")
         if has_mu and self.plane is not None:
             raise fail("{at}.plane needs E and nu (mu and lam are used as given)")
+        stray = [k for k in _all_family_keys() if k != "mu" and getattr(self, k) is not None]
+        if stray:
+            raise fail(
+                f"{{at}}.{stray[0]} is a key of the rubber/tissue models, not of "
+                f"{self.model!r} (which takes E, nu or mu, lam)"
+            )
         return self
+
+    def _family_keys(self):
+        """A rubber/tissue model: exactly its own keys, all given, with valid values."""
+        keys = FAMILY_KEYS[self.model]
+        for k in ("E", "nu", "lam", "plane", *_all_family_keys()):
+            if k not in keys and getattr(self, k) is not None:
+                raise fail(
+                    f"{{at}}.{k} is not a parameter of {self.model!r} (its keys: {', '.join(keys)})"
+                )
+        for k in keys:
+            v = getattr(self, k)
+            if v is None:
+                raise fail(f"{{at}}.{k} is required for {self.model!r} (keys: {', '.join(keys)})")
+            if k in _FAMILY_POSITIVE and not v > 0:
+                raise fail(f"{{at}}.{k} must be > 0, got {v!r}")
+            if k in ("a01", "a02") and (len(v) not in (2, 3) or not any(v)):
+                raise fail(f"{{at}}.{k} must be a nonzero vector of 2 or 3 numbers, got {list(v)}")
+        if self.k1 is not None and self.k1 < 0:
+            raise fail(f"{{at}}.k1 must be >= 0, got {self.k1!r}")
+        kd = self.kappa_dispersion
+        if kd is not None and not 0.0 <= kd <= 1.0 / 3.0:
+            raise fail(f"{{at}}.kappa_dispersion must lie in [0, 1/3], got {kd!r}")
+        return self
+
+
+def _all_family_keys() -> tuple[str, ...]:
+    """Every rubber/tissue parameter key, each once."""
+    return tuple(dict.fromkeys(k for keys in FAMILY_KEYS.values() for k in keys))
 
 
 # ----------------------------------------------------------------------------------------
@@ -561,6 +636,12 @@ class SolverSpec(Table):
     )
     require_positive_J: Bool = Field(
         default=False, description="also reject trial steps where an element has J <= 0"
+    )
+    max_memory_gb: Positive | None = Field(
+        default=None,
+        description="memory budget [GB] for the estimate checked before the build (default: "
+        "the memory available); a scene whose estimate exceeds it is refused, a larger value "
+        "runs it anyway",
     )
 
 
@@ -844,6 +925,11 @@ class SceneSpec(Table):
     def _cross_problem(self) -> str | None:
         """The first inconsistency between tables, or None."""
         dynamic = not self.static
+        if self.fit is not None and self.material.model in FAMILIES:
+            return (
+                f"[fit] fits E and nu: it needs a Lamé model, not {self.material.model!r} "
+                "(fit rubber/tissue constants with jaxelastic.fitting.fit)"
+            )
         if self.fit is not None:
             for k in ("E", "nu"):
                 if getattr(self.fit.initial, k) is None:

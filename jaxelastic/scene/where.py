@@ -6,7 +6,10 @@ numbers, arithmetic, comparisons (chained too), ``&``/``|``/``^``/``~``/``and``/
 ``(n, dim)``), ``x``, ``y``, ``z`` (its columns) and ``pi``, and calls of a few NumPy
 functions (``abs sqrt hypot minimum maximum sin cos arctan2 isclose logical_and
 logical_or logical_not``, also spelled ``np.abs`` …; keywords ``atol``/``rtol`` only).
-Anything else (attributes, other names or calls, strings, lambdas, …) is refused.
+Anything else (attributes, other names or calls, strings, lambdas, …) is refused, and so
+are constants beyond float64 (``1e999``) and constant arithmetic that overflows
+(``9 ** 9 ** 9``, folded when the expression is checked); floating-point errors while
+evaluating (overflow, division by zero, ``sqrt`` of a negative number) are errors too.
 """
 
 from __future__ import annotations
@@ -63,15 +66,28 @@ class WhereError(ValueError):
     """An expression that is not allowed or cannot be evaluated."""
 
 
+def _constant(node: ast.Constant) -> float:
+    """A numeric literal as a finite float (``1e999`` and huge integers are refused)."""
+    if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
+        raise WhereError(f"constant {node.value!r} is not a number")
+    try:
+        value = float(node.value)
+    except OverflowError:
+        value = math.inf
+    if not math.isfinite(value):
+        text = f"{node.value} " if isinstance(node.value, int) else ""
+        short = text if len(text) <= 24 else f"{text[:12]}... ({len(text) - 1} digits) "
+        raise WhereError(f"a constant {short}is beyond the range of float64 (1.8e308)")
+    return value
+
+
 def _where_eval(node, env):
     """Evaluate an allowed AST node; ``env`` is None for a structural check only."""
     ev = lambda n: _where_eval(n, env)  # noqa: E731
     if isinstance(node, ast.Expression):
         return ev(node.body)
     if isinstance(node, ast.Constant):
-        if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
-            raise WhereError(f"constant {node.value!r} is not a number")
-        return float(node.value)
+        return _constant(node)
     if isinstance(node, ast.Name):
         if node.id == "pi":
             return math.pi
@@ -84,11 +100,13 @@ def _where_eval(node, env):
         return env[node.id]
     if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
         a, b = ev(node.left), ev(node.right)
-        return None if env is None else _BINOPS[type(node.op)](a, b)
+        if env is None and not (isinstance(a, float) and isinstance(b, float)):
+            return None  # the structural check folds constants only
+        return _checked(node, _BINOPS[type(node.op)], a, b)
     if isinstance(node, ast.UnaryOp):
         a = ev(node.operand)
         if env is None:
-            return None
+            return -a if isinstance(a, float) and isinstance(node.op, ast.USub) else None
         if isinstance(node.op, ast.USub):
             return np.negative(a)
         if isinstance(node.op, ast.UAdd):
@@ -138,6 +156,24 @@ def _where_eval(node, env):
     raise WhereError(f"{type(node).__name__} is not allowed in a selection expression")
 
 
+def _checked(node, op, a, b):
+    """``op(a, b)`` with floating-point errors (overflow, 0/0, x/0) raised as WhereError
+    naming the subexpression; a constant result must be a finite float64."""
+    try:
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            out = op(np.float64(a), np.float64(b)) if isinstance(a, float) else op(a, b)
+    except (FloatingPointError, ZeroDivisionError, OverflowError) as e:
+        what = str(e).removeprefix("FloatingPointError: ") or type(e).__name__
+        raise WhereError(f"{ast.unparse(node)}: {what} (refusing non-finite values)") from None
+    if isinstance(a, float) and isinstance(b, float):
+        if isinstance(out, (np.bool_, bool)):
+            return out
+        out = float(out)
+        if not math.isfinite(out):
+            raise WhereError(f"{ast.unparse(node)} is beyond the range of float64 (1.8e308)")
+    return out
+
+
 def _where_index(node, env):
     if isinstance(node, ast.Tuple):
         return tuple(_where_index(e, env) for e in node.elts)
@@ -156,11 +192,21 @@ def _where_int(node):
 
 
 def where_mask(expr: str, X: np.ndarray) -> np.ndarray:
-    """Evaluate a selection expression on rest positions ``X`` ``(n, dim)`` → ``(n,)`` bool."""
+    """Evaluate a selection expression on rest positions ``X`` ``(n, dim)`` → ``(n,)`` bool.
+
+    Floating-point errors (overflow, division by zero, invalid values such as
+    ``sqrt(-1)``) raise :class:`WhereError` instead of warning and selecting by ``inf`` or
+    ``nan``.
+    """
     tree = check_where(expr)
     X = np.asarray(X, dtype=float)
     env = {"X": X, **{c: X[:, i] for i, c in enumerate("xyz"[: X.shape[1]])}}
-    out = np.broadcast_to(np.asarray(_where_eval(tree, env)), (X.shape[0],))
+    try:
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            value = _where_eval(tree, env)
+    except FloatingPointError as e:  # e.g. sqrt(x - 1) at x < 1
+        raise WhereError(f"{e} (refusing non-finite values)") from None
+    out = np.broadcast_to(np.asarray(value), (X.shape[0],))
     if out.dtype != bool:
         raise WhereError(f"the expression gives {out.dtype} values, not a boolean mask")
     return out

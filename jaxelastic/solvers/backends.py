@@ -190,6 +190,11 @@ class DirectSolver:
             self.positive_definite = False
         self._solve = lu.solve
 
+    def release(self) -> None:
+        """Drop the factorisation (frees the compiled solver object now, not at exit)."""
+        self._solve = None
+        self.positive_definite = None
+
     def solve(self, b) -> np.ndarray:
         """Exact solve ``K x = b`` with the current factorisation.
 

@@ -24,9 +24,11 @@ entry is ``≤ 0``, the hierarchy is built anyway).
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import threading
 import time
+import weakref
 from typing import Any
 
 import numpy as np
@@ -54,6 +56,18 @@ def content_key(cells, points, fixed, kind: str, opts: dict) -> tuple:
     n, d = np.shape(points)
     return (kind, n, d, h.hexdigest(), repr(sorted(opts.items())))
 
+
+def _release_all() -> None:
+    """At interpreter exit, drop every live factorisation before the extension modules are
+    torn down: cholespy objects still referenced from jit caches would otherwise be reported
+    by nanobind as leaked ("leaked 1 instances … CholeskySolverD")."""
+    _SHARED.clear()
+    for inst in list(_LIVE):
+        inst.release()
+
+
+_LIVE: weakref.WeakSet = weakref.WeakSet()  # every HostLinearSolver, for _release_all
+atexit.register(_release_all)
 
 SHARED_CAPACITY = 8
 """How many distinct host solvers :meth:`HostLinearSolver.shared` keeps alive."""
@@ -107,6 +121,17 @@ class HostLinearSolver:
         # XLA may run independent host callbacks concurrently (e.g. two load cases that
         # share this solver): one call at a time, since they share the factorisation
         self._lock = threading.Lock()
+        _LIVE.add(self)
+
+    def release(self) -> None:
+        """Drop the factorisation / hierarchy (the next :meth:`apply` gives NaN until the
+        next :meth:`factor`)."""
+        with self._lock:
+            self._ready = False
+            if isinstance(self.backend, DirectSolver):
+                self.backend.release()
+            else:
+                self.backend.ml = None  # AMG: the hierarchy
 
     @classmethod
     def for_problem(cls, mesh, bc, kind: str = "direct", **opts) -> HostLinearSolver:

@@ -15,8 +15,10 @@ Each iteration:
    solution, decrease of the residual near it, where Π's round-off (~1e-16·Σ_c|x_cᵀK_c x_c|,
    far above 1e-16·|Π| near rest because ψ cancels large terms) exceeds the predicted
    decrease; steps that move Dirichlet dofs only need a finite Π.
-4. Convergence: ``‖g_free‖ ≤ max(atol, rtol·‖g‖_ref)`` with all Dirichlet dofs in place
-   (or a full step below ``xtol`` times the body's size, at the residual's round-off),
+4. Convergence: ``‖g_free‖ ≤ max(atol, rtol·‖g‖_ref, floor)`` with all Dirichlet dofs in
+   place, where ``floor`` is the residual's round-off floor (:func:`_residual_floor`:
+   ``2·eps`` times the root-sum-square of the terms of the forces; reported as
+   ``stats["residual_floor"]``), or a full step below ``xtol`` times the body's size;
    where ``‖g‖_ref`` is the largest free residual seen, ‖f_ext‖, or the largest
    right-hand side ``‖g_f + K_fD Δ_D‖`` (the force induced by a Dirichlet motion).
 
@@ -34,7 +36,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from .. import potential as pot_mod
-from ..energy import hvp
+from ..energy import assemble, hvp
 from ..kinematics import deformation_gradients, det
 from ..loads import Dirichlet
 from ..potential import Potential
@@ -232,7 +234,8 @@ def _iteration(s: Newton, pot, bc: Dirichlet, c: dict, length) -> dict:
     # bn = ‖g_f + K_fD Δ_D‖ is the force a Dirichlet motion induces: the reference of a
     # purely displacement-driven solve (whose free residual is 0 at the rest shape)
     ref = jnp.maximum(jnp.maximum(c["ref"], rn), bn)
-    st = _status(s, rn, dn, ref, k + 1)
+    floor = _residual_floor(pot, system, x_new, fm)
+    st = _status(s, rn, dn, ref, k + 1, floor)
     tiny_step = acc & (alpha == 1.0) & (dn == 0) & (jnp.max(jnp.abs(step)) <= s.xtol * length)
     st = jnp.where((st == RUNNING) & tiny_step & jnp.isfinite(rn), Status.SUCCESS, st)
     st = jnp.where(acc, st, Status.LINE_SEARCH_FAILED)
@@ -251,11 +254,47 @@ def _iteration(s: Newton, pot, bc: Dirichlet, c: dict, length) -> dict:
         cuts=c["cuts"] + cuts.astype(jnp.int32),
         neg=c["neg"] + neg.astype(jnp.int32),
         proj=c["proj"] + lin.stats["projected"].astype(jnp.int32),
+        floor=floor,
     )
 
 
-def _status(s: Newton, rn, dn, ref, k):
-    tol = jnp.maximum(s.atol, s.rtol * ref)
+FLOOR_FACTOR = 2.0
+"""The residual's round-off floor is taken as ``FLOOR_FACTOR · eps · ‖r̄‖`` (see
+:func:`_residual_floor`)."""
+
+
+def _residual_floor(pot: Potential, system: NewtonSystem, x, fm):
+    """Round-off floor of the free force residual at x [force].
+
+    Every nodal force is a sum of terms computed in floating point, and F is built from
+    *absolute* positions, so the residual cannot be resolved below about ``eps`` times the
+    root-sum-square of the terms that enter it: ``r̄² = Σ_a [Σ_c Σ_j (K_c,aj x_j)² +
+    f_ext,a² + (w m_a)² (x_a² + x̃_a²)]`` over free dofs (mass-damping likewise), with the
+    element Hessians ``K_c`` of this Newton step (no stiffness term in matrix-free
+    ``hessian="hvp"`` + ``CG(preconditioner="none")``, which builds none). Measured on a
+    steel block (E = 210 GPa, linear, one exact Newton step): the residual stagnates at
+    5.5e-5 N, this estimate (factor 1) is 1.6e-4 N; the worst-case absolute sum would be
+    1.0e-3 N. Newton stops with SUCCESS once the residual is below ``FLOOR_FACTOR`` times
+    this (``stats["residual_floor"]``): below it no Newton step makes measurable progress.
+    """
+    eps = jnp.finfo(x.dtype).eps
+    sq = jnp.zeros_like(x)
+    if system.Ke is not None:
+        mesh = pot.mesh
+        xe = x[mesh.cells].reshape(mesh.n_cells, -1)
+        v = jnp.einsum("cij,cj->ci", system.Ke**2, xe**2)
+        sq = sq + assemble(mesh, v.reshape(mesh.cells.shape + (-1,)))
+    if pot.f_ext is not None:
+        sq = sq + pot.f_ext**2
+    md = pot_mod.mass_diagonal(pot)
+    if md is not None:
+        ref = pot.x_tilde if pot.x_tilde is not None else x
+        sq = sq + (md**2)[:, None] * (x**2 + ref**2)
+    return FLOOR_FACTOR * eps * jnp.sqrt(jnp.sum(sq * fm))
+
+
+def _status(s: Newton, rn, dn, ref, k, floor: jax.Array | float = 0.0):
+    tol = jnp.maximum(jnp.maximum(s.atol, s.rtol * ref), floor)
     st = jnp.where(~jnp.isfinite(rn), Status.NONFINITE, RUNNING)
     st = jnp.where((st == RUNNING) & (rn <= tol) & (dn == 0), Status.SUCCESS, st)
     return jnp.where((st == RUNNING) & (k >= s.max_steps), Status.MAX_STEPS, st)
@@ -286,6 +325,7 @@ def _initial_carry(s: Newton, pot, bc: Dirichlet, x0) -> dict:
         cuts=zero,
         neg=zero,
         proj=zero,
+        floor=jnp.zeros((), dtype),
     )
 
 
@@ -308,6 +348,7 @@ def _run(s: Newton, pot: Potential, bc: Dirichlet, x0) -> Solution:
         line_search_cutbacks=c["cuts"],
         negative_curvature=c["neg"],
         projected=c["proj"],
+        residual_floor=c["floor"],
         wall_time=jnp.asarray(jnp.nan, x0.dtype),
     )
     return Solution(x=c["x"], status=c["status"], stats=stats)

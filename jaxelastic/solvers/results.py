@@ -73,7 +73,9 @@ class Solution(NamedTuple):
             ``linear_history`` ``(max_steps,)``, ``step_history`` ``(max_steps,)``
             (accepted step lengths, NaN-padded), ``line_search_cutbacks``,
             ``negative_curvature`` (Newton steps whose linear solve met it),
-            ``projected`` (steps whose host matrix was PSD-projected), ``wall_time`` [s]
+            ``projected`` (steps whose host matrix was PSD-projected),
+            ``residual_floor`` (the round-off floor of the residual at the last iterate
+            [force]: a residual at or below it counts as converged), ``wall_time`` [s]
             (NaN inside jit). Linear: ``iterations``, ``residual``.
     """
 

@@ -14,6 +14,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.core import Tracer
 
 from ..loads import Dirichlet
@@ -21,6 +22,7 @@ from ..potential import Potential
 from .adjoint import ImplicitAdjoint, differentiable_minimize
 from .linear import bind_linear
 from .newton import Newton
+from .pattern import rigid_body_modes
 from .results import Solution, SolveError, Status
 
 __all__ = ["solve", "bind_solver", "is_traced"]
@@ -58,11 +60,71 @@ def _check_inputs(pot: Potential, bc: Dirichlet, x0):
     for name, a in (("bc.mask", bc.mask), ("bc.values", bc.values)):
         if tuple(jnp.shape(a)) != shape:
             raise ValueError(f"{name} must have shape {shape} (n_nodes, dim), got {jnp.shape(a)}")
+    dt = jnp.result_type(pot.mesh.points)
+    if (
+        jnp.issubdtype(jnp.result_type(bc.values), jnp.floating)
+        and jnp.result_type(bc.values) != dt
+        and jnp.finfo(jnp.result_type(bc.values)).bits > jnp.finfo(dt).bits
+    ):
+        raise ValueError(
+            f"bc.values has dtype {jnp.result_type(bc.values)} but the mesh is {dt}: build "
+            f"the Dirichlet data from the mesh (je.loads.fix) or cast the values to {dt}"
+        )
     if x0 is None:
         return pot.mesh.points
     if tuple(jnp.shape(x0)) != shape:
         raise ValueError(f"x0 must have shape {shape} (n_nodes, dim), got {jnp.shape(x0)}")
     return jnp.asarray(x0, pot.mesh.points.dtype)
+
+
+def _free_rigid_motions(pot: Potential, bc: Dirichlet) -> list[str]:
+    """The infinitesimal rigid-body motions of the rest shape that ``bc`` leaves free.
+
+    A static potential (no mass term) is invariant under them, so its Hessian is singular
+    and the solve has no unique answer; under a load it does not converge at all.
+    """
+    X = np.asarray(pot.mesh.points, dtype=np.float64)
+    d = X.shape[1]
+    mask = np.asarray(bc.mask, dtype=bool).reshape(-1)
+    R = rigid_body_modes(X)  # (n·d, m): translations then rotations
+    m = R.shape[1]
+    RD = R[mask]
+    if RD.shape[0] == 0:
+        null = np.eye(m)
+    else:
+        _, sv, Vt = np.linalg.svd(RD, full_matrices=True)
+        rank = int(np.sum(sv > 1e-9 * max(float(sv.max(initial=0.0)), 1.0)))
+        null = Vt[rank:].T  # (m, m - rank)
+    if null.shape[1] == 0:
+        return []
+    axes = "xyz"[:d]
+    rot_axes = "z" if d == 2 else "xyz"
+    Nt, Nr = null[:d], null[d:]  # translation and rotation parts of the free motions
+    U, sr, Vt2 = np.linalg.svd(Nr, full_matrices=True)
+    r = int(np.sum(sr > 1e-6))
+    used: list[int] = []
+    for i in range(r):  # a distinct dominant axis per free rotation
+        w = np.abs(U[:, i]).copy()
+        w[used] = -1.0
+        used.append(int(np.argmax(w)))
+    names = [f"rotation about {rot_axes[j]}" for j in sorted(used)]
+    pure = Nt @ Vt2[r:].T  # free motions without a rotational part: translations
+    names += [f"translation along {axes[int(np.argmax(np.abs(t)))]}" for t in pure.T]
+    return sorted(names, key=lambda n: (not n.startswith("translation"), n))
+
+
+def _check_constrained(pot: Potential, bc: Dirichlet) -> None:
+    if pot.mass is not None:
+        return  # dynamics: a free body is valid (the mass term removes the null space)
+    free = _free_rigid_motions(pot, bc)
+    if free:
+        raise ValueError(
+            f"the Dirichlet conditions leave {len(free)} rigid-body motion(s) free "
+            f"({', '.join(free)}): a static solve has no unique solution (the Hessian is "
+            "singular) and does not converge under a load. Fix enough dofs to remove them "
+            "(e.g. je.loads.fix(mesh, nodes)), or solve dynamics (a Potential with mass), "
+            "where a free body is valid"
+        )
 
 
 def solve(
@@ -97,6 +159,10 @@ def solve(
         throw: outside jit, raise :class:`~jaxelastic.solvers.results.SolveError` unless
             the status is SUCCESS. Inside jit nothing is raised: read ``status``.
 
+    Raises:
+        ValueError: (outside jit, before anything is compiled) inputs of the wrong shape, or
+            a static potential whose Dirichlet conditions leave rigid-body motions free.
+
     Returns:
         :class:`~jaxelastic.solvers.results.Solution` (``x``, ``status``, ``stats``; outside
         jit ``stats["wall_time"]`` is the wall-clock time of the solve in seconds).
@@ -107,10 +173,18 @@ def solve(
         raise TypeError(f"adjoint must be je.ImplicitAdjoint(...), got {type(adjoint).__name__}")
     if is_traced(pot, bc, x0):
         return differentiable_minimize(solver, adjoint, pot, bc, x0)
+    _check_constrained(pot, bc)
     t0 = time.perf_counter()
     res = jax.block_until_ready(_solve_jit(pot, bc, x0, solver, adjoint))
     stats = dict(res.stats, wall_time=time.perf_counter() - t0)
     res = res._replace(stats=stats)
     if throw and int(res.status) != Status.SUCCESS:
-        raise SolveError(res, "Newton solve")
+        what = "Newton solve"
+        if x0.dtype == jnp.float32:
+            what += (
+                " in float32 (x64 is off: the residual cannot go below its round-off floor, "
+                f"{float(res.stats['residual_floor']):.2e} here; enable float64 with "
+                "jax.config.update('jax_enable_x64', True) or loosen rtol/atol)"
+            )
+        raise SolveError(res, what)
     return res
