@@ -31,12 +31,12 @@ from .interrupt import Interrupted
 from .load import Scene, load_scene
 from .outputs import (
     FIT_OUTPUTS,
+    finish_summary,
     log,
     prepare_out,
     remove_temporaries,
     save_npz,
     save_png,
-    write_summary,
 )
 from .run import static_solve
 from .schema import FitCase, FitSpec
@@ -417,15 +417,12 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
         _fit_and_write(scene, out, cases, markers, arrays, labels, n_reg, progress, summary)
     except (SolveError, GradientError) as e:
         summary.pop("completed", None)
-        summary.update(status="failed", error=f"{type(e).__name__}: {e}", interrupted=False)
-        summary["timings"]["total"] = time.perf_counter() - t_start
-        write_summary(path, summary)
+        error = f"{type(e).__name__}: {e}"
+        finish_summary(path, summary, t_start, status="failed", error=error, interrupted=False)
         raise
     except KeyboardInterrupt as e:
         raise _interrupted(e, out, path, summary, t_start) from None
-    summary.update(status="ok", interrupted=False)
-    summary["timings"]["total"] = time.perf_counter() - t_start
-    return write_summary(path, summary)
+    return finish_summary(path, summary, t_start, status="ok", interrupted=False)
 
 
 def _interrupted(e: KeyboardInterrupt, out: str, path: str, summary: dict, t_start: float):
@@ -433,9 +430,8 @@ def _interrupted(e: KeyboardInterrupt, out: str, path: str, summary: dict, t_sta
     name = e.signame if isinstance(e, Interrupted) else "KeyboardInterrupt"
     completed = summary.pop("completed", "nothing")
     with interrupt.shield():
-        summary.update(status="interrupted", interrupted=True, signal=name, completed=completed)
-        summary["timings"]["total"] = time.perf_counter() - t_start
-        write_summary(path, summary)
+        fields = dict(status="interrupted", interrupted=True, signal=name, completed=completed)
+        finish_summary(path, summary, t_start, **fields)
         remove_temporaries(out)
     return Interrupted(name, f"after {completed} (no fitted values)", out)
 

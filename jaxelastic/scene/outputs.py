@@ -14,6 +14,7 @@ import fnmatch
 import os
 import re
 import sys
+import time
 
 import jax
 import numpy as np
@@ -177,6 +178,14 @@ def write_summary(path: str, summary: dict) -> dict:
     out = to_jsonable(summary)
     assert isinstance(out, dict)  # a dict converts to a dict
     return out
+
+
+def finish_summary(path: str, summary: dict, t_start: float, **fields) -> dict:
+    """Set the final ``fields`` (status, error, interrupted, …) and the total time
+    (``time.perf_counter() − t_start``), then :func:`write_summary`."""
+    summary.update(fields)
+    summary["timings"]["total"] = time.perf_counter() - t_start
+    return write_summary(path, summary)
 
 
 # ----------------------------------------------------------------------------------------

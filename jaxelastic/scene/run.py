@@ -29,6 +29,7 @@ from .load import load_scene
 from .outputs import (
     dynamic_figures,
     elastic_energy,
+    finish_summary,
     log,
     prepare_out,
     probe_report,
@@ -39,7 +40,6 @@ from .outputs import (
     static_figure,
     vtu_plane,
     write_static_vtu,
-    write_summary,
 )
 from .schema import DynamicIntegrator, StaticIntegrator
 
@@ -484,15 +484,11 @@ def run_scene(scene, out_dir, progress: bool = True) -> dict:
         summary["timings"]["build"] = time.perf_counter() - t0
         (_run_static if scene.static else _run_dynamic)(built, out, progress, summary)
     except SolveError as e:
-        summary.update(status="failed", error=str(e), interrupted=False)
-        summary["timings"]["total"] = time.perf_counter() - t_start
-        write_summary(path, summary)
+        finish_summary(path, summary, t_start, status="failed", error=str(e), interrupted=False)
         raise
     except KeyboardInterrupt as e:
         raise _interrupted(e, out, path, summary, t_start) from None
-    summary.update(status="ok", interrupted=False)
-    summary["timings"]["total"] = time.perf_counter() - t_start
-    return write_summary(path, summary)
+    return finish_summary(path, summary, t_start, status="ok", interrupted=False)
 
 
 def _interrupted(e: KeyboardInterrupt, out: str, path: str, summary: dict, t_start: float):
@@ -502,10 +498,7 @@ def _interrupted(e: KeyboardInterrupt, out: str, path: str, summary: dict, t_sta
         stop.detail = "during the build" if "mesh" not in summary else "before the first step"
     stop.out = out
     with interrupt.shield():
-        summary.update(
-            status="interrupted", interrupted=True, signal=stop.signame, completed=stop.detail
-        )
-        summary["timings"]["total"] = time.perf_counter() - t_start
-        write_summary(path, summary)
+        fields = dict(status="interrupted", interrupted=True, signal=stop.signame)
+        finish_summary(path, summary, t_start, completed=stop.detail, **fields)
         remove_temporaries(out)
     return stop
