@@ -760,3 +760,20 @@ def test_fit_failed_solve_raises(beam2):
     cases = [LoadCase(pot=pot, bc=b.bc, observed=pot.mesh.points + 0.1)]
     with pytest.raises(GradientError, match="forward solve failed"):
         fit(cases, Material(E_MOD, NU), solver=je.Newton(rtol=1e-12, max_steps=1))
+
+
+def test_fit_callback_stops_at_an_iteration_boundary(beam2):
+    """``callback(k, params, loss) -> True`` stops the fit after that iteration and keeps
+    every iterate so far (the hook a Ctrl-C handler uses)."""
+    cases = _cases(beam2, Material(100.0, 0.3))
+    seen = []
+
+    def stop_after_two(k, params, loss):
+        seen.append((k, float(params.E), float(loss)))
+        return k >= 2
+
+    res = fit(cases, Material(300.0, 0.15), solver=TIGHT, callback=stop_after_two)
+    assert res.stop_reason == "callback" and res.iterations == 2 and not res.converged
+    assert [k for k, _, _ in seen] == [1, 2]
+    assert len(res.loss_history) == 3 and seen[-1][2] == pytest.approx(res.loss)
+    assert seen[-1][1] == pytest.approx(res.E)

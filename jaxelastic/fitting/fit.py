@@ -56,8 +56,8 @@ class FitResult(NamedTuple):
         converged: a stopping criterion met (else ``max_iter`` reached or stalled).
         stop_reason: ``"gtol"``, ``"ftol"``, ``"xtol"``, ``"roundoff"`` (the line search's
             predicted decrease fell below 1e-12 × loss: no measurable progress is possible;
-            counted as converged), ``"stalled"`` (line search or failed solves) or
-            ``"max_iter"``.
+            counted as converged), ``"stalled"`` (line search or failed solves),
+            ``"max_iter"`` or ``"callback"`` (the callback asked to stop).
         iterations: optimiser iterations k.
         loss_history: ``(k + 1,)`` loss at each iterate.
         param_history: every leaf per iterate, in leaf order: ``(k + 1, n_leaves)`` for
@@ -166,7 +166,7 @@ def _step(tr: _Tracker, z, f, d, slope, warms, line_search: bool):
     return None, t
 
 
-def _optimize(tr: _Tracker, optimizer, line_search, z, tol, max_iter, bar):
+def _optimize(tr: _Tracker, optimizer, line_search, z, tol, callback, max_iter, bar):
     """The optimiser loop from z; returns ``(z, iterations, stop reason, warm starts)``."""
     update_jit = _update_fn(optimizer)
 
@@ -210,6 +210,8 @@ def _optimize(tr: _Tracker, optimizer, line_search, z, tol, max_iter, bar):
             bar.update(1)
         if float(t * jnp.max(jnp.abs(d))) <= xtol:
             return z, k, "xtol", warms
+        if callback is not None and callback(k, tr.obj.params(z), f):
+            return z, k, "callback", warms
 
 
 def fit(
@@ -232,6 +234,7 @@ def fit(
     solver: Newton = FIT_SOLVER,
     adjoint: ImplicitAdjoint = ImplicitAdjoint(),
     progress: bool = False,
+    callback=None,
 ) -> FitResult:
     """Fit material parameters (any ψ pytree, or E and ν) to observations in several cases.
 
@@ -271,6 +274,11 @@ def fit(
             for accurate gradients; its linear solver is bound to each case once).
         adjoint: :class:`~jaxelastic.solvers.ImplicitAdjoint` settings.
         progress: show a tqdm progress bar with the loss and gradient norm.
+        callback: called after every accepted iteration with ``(k, params, loss)``
+            (params in ``init``'s structure); return True to stop there (stop reason
+            ``"callback"``, e.g. on Ctrl-C, keeping every iterate so far).
+
+    Long because: the docstring documents 19 arguments; the body is ten lines.
 
     Raises:
         GradientError: a forward solve at the initial guess failed.
@@ -283,7 +291,8 @@ def fit(
     if isinstance(optimizer, str):
         optimizer = _named_optimizer(optimizer, float(learning_rate))
     tr = _Tracker(obj)
-    run = functools.partial(_optimize, tr, optimizer, line_search, obj.z0, (gtol, ftol, xtol))
+    tols = (gtol, ftol, xtol)
+    run = functools.partial(_optimize, tr, optimizer, line_search, obj.z0, tols, callback)
     z, k, reason, warms = _with_progress(run, max_iter, progress)
     return _result(tr, z, k, reason, warms, time.perf_counter() - t_start)
 
