@@ -248,3 +248,37 @@ def test_an_interrupted_fit_writes_a_marked_summary(tmp_path, monkeypatch, capsy
     assert s["completed"] == "the observations; interrupted during the optimiser"
     assert s["observations"]["n_markers"] > 0 and "result" not in s
     assert not [f for f in os.listdir(out) if f.endswith(".tmp")]
+
+
+def test_a_fit_interrupted_between_iterations_keeps_its_iterates(tmp_path, monkeypatch, capsys):
+    """SIGINT after the first optimiser iteration: the fit stops at the next iteration
+    boundary, writes the fitted values so far and exits 130 with one line."""
+    import importlib
+    import os
+    import signal
+
+    fit_mod = importlib.import_module("jaxelastic.scene.fit")
+    real_fit = fit_mod.fitting.fit
+
+    def fit_with_a_signal(*args, callback=None, **kw):
+        def cb(k, params, loss):
+            stop = callback(k, params, loss)
+            if k == 1:
+                os.kill(os.getpid(), signal.SIGINT)  # recorded: past the first iteration
+            return stop
+
+        return real_fit(*args, callback=cb, **kw)
+
+    monkeypatch.setattr(fit_mod.fitting, "fit", fit_with_a_signal)
+    scene = _write(tmp_path, TINY_FIT % SYNTH)
+    out = tmp_path / "out"
+    assert cli.main(["fit", str(scene), "--out", str(out), "--no-progress", "--no-cache"]) == 130
+    err = capsys.readouterr().err.strip()
+    assert "interrupted by SIGINT after the observations and 2 optimiser iteration(s)" in err
+    assert "(fitted values so far in summary.json)" in err and err.count("\n") == 0
+    with open(out / "summary.json") as f:
+        s = json.load(f)
+    assert s["status"] == "interrupted" and s["interrupted"]
+    assert s["completed"] == "the observations and 2 optimiser iteration(s)"
+    assert "result" in s and s["result"]["stop_reason"] == "callback"
+    assert not [f for f in os.listdir(out) if f.endswith(".tmp")]

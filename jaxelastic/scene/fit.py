@@ -231,7 +231,7 @@ def _load_cases(scene: Scene, builts: list[Built], observed, markers: np.ndarray
     return cases, arrays
 
 
-def _fit(scene: Scene, cases, labels, n_reg: int, progress: bool) -> fitting.FitResult:
+def _fit(scene: Scene, cases, labels, n_reg: int, progress: bool, callback=None):
     cfg, spec = _fit_spec(scene), scene.spec
     init = fitting.Material(E=cfg.initial.E, nu=cfg.initial.nu)
     if labels is not None:
@@ -249,6 +249,7 @@ def _fit(scene: Scene, cases, labels, n_reg: int, progress: bool) -> fitting.Fit
         gtol=cfg.gtol,
         solver=solver.replace(rtol=min(solver.rtol, 1e-10)),
         progress=progress,
+        callback=callback,
     )
 
 
@@ -356,9 +357,18 @@ def _fit_and_write(scene, out, cases, markers, arrays, labels, n_reg, progress, 
     )
     t0 = time.perf_counter()
     summary["completed"] = "the observations; interrupted during the optimiser"
-    with interrupt.immediate():  # the optimiser has no step boundary to stop at
-        res = _fit(scene, cases, labels, n_reg, progress)
-    del summary["completed"]
+
+    def at_iteration(k, params, loss) -> bool:
+        # past the first iteration (and its compilation) a signal stops at the next one
+        interrupt.at_boundaries()
+        summary["completed"] = f"the observations and {k} optimiser iteration(s)"
+        return interrupt.requested() is not None
+
+    with interrupt.immediate():  # until the first iteration ends: no boundary to stop at
+        res = _fit(scene, cases, labels, n_reg, progress, at_iteration)
+    stopped = res.stop_reason == "callback"
+    if not stopped:
+        del summary["completed"]
     summary["timings"]["fit_incl_compile"] = time.perf_counter() - t0
     summary["result"], summary["history"] = _result(res, summary["target"], labels, n_reg)
     t0 = time.perf_counter()
@@ -370,6 +380,8 @@ def _fit_and_write(scene, out, cases, markers, arrays, labels, n_reg, progress, 
     path = os.path.join(out, "summary.json")
     summary["outputs"] = dict(directory=out, summary=path, png=[png], observed=npz)
     summary["timings"]["outputs"] = time.perf_counter() - t0
+    if stopped:  # the fitted values so far are written: now stop
+        interrupt.check()
 
 
 def run_fit(scene, out_dir, progress: bool = True) -> dict:
@@ -433,7 +445,8 @@ def _interrupted(e: KeyboardInterrupt, out: str, path: str, summary: dict, t_sta
         fields = dict(status="interrupted", interrupted=True, signal=name, completed=completed)
         finish_summary(path, summary, t_start, **fields)
         remove_temporaries(out)
-    return Interrupted(name, f"after {completed} (no fitted values)", out)
+    kept = "fitted values so far in summary.json" if "result" in summary else "no fitted values"
+    return Interrupted(name, f"after {completed} ({kept})", out)
 
 
 # ----------------------------------------------------------------------------------------

@@ -118,6 +118,13 @@ def immediate() -> Iterator[None]:
         _state.raise_now = old
 
 
+def at_boundaries() -> None:
+    """From now on (until the enclosing :func:`immediate` block ends) a first signal is
+    only recorded again: for a phase that has just reached its first step boundary, e.g.
+    an optimiser past its compilation whose iterations can now be polled."""
+    _state.raise_now = False
+
+
 @contextlib.contextmanager
 def shield() -> Iterator[None]:
     """Inside this block signals are only recorded, never raised (writing the outputs of a
