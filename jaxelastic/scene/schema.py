@@ -49,6 +49,8 @@ __all__ = [
     "SceneSpec",
     "MeshSpec",
     "MaterialSpec",
+    "FibreCellData",
+    "FibreRegion",
     "Selector",
     "PlaneSelector",
     "BoxSelector",
@@ -347,6 +349,80 @@ MaterialModel = Annotated[
 ]
 
 
+class FibreCellData(Table):
+    """HGO fibre directions per cell, read from a cell-data array of ``[mesh].file``."""
+
+    cell_data: Str = Field(
+        description="name of a cell-data array of [mesh].file with shape (n_cells, 3) (2D: "
+        "also (n_cells, 2)); every row nonzero (rows are normalised)"
+    )
+
+
+class FibreRegion(Table):
+    """One HGO fibre region: the cells whose centroid satisfies ``where`` get ``direction``
+    (the first matching region wins); the last region, without ``where``, is the default."""
+
+    where: WhereExpr | None = Field(
+        default=None,
+        description='a boolean expression of the cell centroids (X, x, y, z), e.g. "x < 0.5"; '
+        "required except in the last region (the default for the remaining cells)",
+    )
+    direction: Vector = Field(
+        description="the fibre direction (reference) of these cells: 2 or 3 numbers, nonzero"
+    )
+
+    @model_validator(mode="after")
+    def _nonzero(self):
+        d = self.direction
+        if len(d) not in (2, 3) or not any(d):
+            raise fail(
+                f"{{at}}.direction must be a nonzero vector of 2 or 3 numbers, got {list(d)}"
+            )
+        return self
+
+
+def _default_last(v: tuple) -> tuple:
+    for i, r in enumerate(v[:-1]):
+        if r.where is None:
+            raise fail(
+                f"{{at}}[{i}] needs where = ... (only the last region, the default, has none)"
+            )
+    if v[-1].where is not None:
+        raise fail(
+            "{at}: the last region must be the default { direction = [..] } without where "
+            "(the cells matching no region get it)"
+        )
+    return v
+
+
+FibreRegions = Annotated[
+    tuple[FibreRegion, ...], Field(min_length=1), AfterValidator(_default_last)
+]
+
+
+def _fibre_kind(v) -> str:
+    if isinstance(v, (Mapping, BaseModel)):
+        return "~table"
+    if isinstance(v, (list, tuple)) and v and all(isinstance(e, (Mapping, BaseModel)) for e in v):
+        return "~regions"
+    return "~array"
+
+
+if TYPE_CHECKING:
+    FibreDirection = Vector | FibreCellData | FibreRegions
+else:
+    FibreDirection = Annotated[
+        Union[  # noqa: UP007
+            Annotated[Vector, Tag("~array")],
+            Annotated[FibreCellData, Tag("~table")],
+            Annotated[FibreRegions, Tag("~regions")],
+        ],
+        Discriminator(_fibre_kind),
+    ]
+"""An HGO fibre direction: one vector for all cells, ``{ cell_data = "name" }``, or an
+array of :class:`FibreRegion` (``{ where = ..., direction = [..] }``, the default last)."""
+
+
 class MaterialSpec(Table):
     """The material: a strain-energy density and its elastic parameters."""
 
@@ -394,10 +470,16 @@ class MaterialSpec(Table):
         default=None, description="HGO fibre dispersion, in [0, 1/3]"
     )
     bulk: Number | None = Field(default=None, description="[Pa] HGO bulk modulus (> 0)")
-    a01: Vector | None = Field(
-        default=None, description="HGO first fibre direction (reference), e.g. [1, 0, 0]"
+    a01: FibreDirection | None = Field(
+        default=None,
+        description="HGO first fibre direction (reference): a vector for all cells, e.g. "
+        '[1, 0, 0]; or per cell: { cell_data = "name" } (a (n_cells, 3) cell-data array of '
+        '[mesh].file) or regions [{ where = "x < 0.5", direction = [..] }, ..., '
+        "{ direction = [..] }] (cell centroids, first match wins, the default last)",
     )
-    a02: Vector | None = Field(default=None, description="HGO second fibre direction")
+    a02: FibreDirection | None = Field(
+        default=None, description="HGO second fibre direction (the same forms as a01)"
+    )
 
     @model_validator(mode="after")
     def _one_pair(self):
@@ -438,7 +520,7 @@ class MaterialSpec(Table):
                 raise fail(f"{{at}}.{k} is required for {self.model!r} (keys: {', '.join(keys)})")
             if k in _FAMILY_POSITIVE and not v > 0:
                 raise fail(f"{{at}}.{k} must be > 0, got {v!r}")
-            if k in ("a01", "a02") and (len(v) not in (2, 3) or not any(v)):
+            if k in ("a01", "a02") and _is_vector(v) and (len(v) not in (2, 3) or not any(v)):
                 raise fail(f"{{at}}.{k} must be a nonzero vector of 2 or 3 numbers, got {list(v)}")
         if self.k1 is not None and self.k1 < 0:
             raise fail(f"{{at}}.k1 must be >= 0, got {self.k1!r}")
@@ -446,6 +528,11 @@ class MaterialSpec(Table):
         if kd is not None and not 0.0 <= kd <= 1.0 / 3.0:
             raise fail(f"{{at}}.kappa_dispersion must lie in [0, 1/3], got {kd!r}")
         return self
+
+
+def _is_vector(v) -> bool:
+    """Whether a fibre direction is one vector (not cell data or regions)."""
+    return isinstance(v, tuple) and not any(isinstance(e, BaseModel) for e in v)
 
 
 def _all_family_keys() -> tuple[str, ...]:
