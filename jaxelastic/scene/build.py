@@ -28,10 +28,8 @@ from ..materials import (
     BUILTIN,
     FAMILIES,
     FAMILY_PARAMS,
-    HolzapfelGasserOgden,
     Lame,
     lame,
-    per_cell_fibres,
 )
 from ..mesh import (
     Mesh,
@@ -49,7 +47,15 @@ from ..solvers import CG, Newton, bind_solver
 from . import memory
 from .callables import CallableSpecError, import_callable, n_positional
 from .load import Scene, load_scene
-from .schema import DynamicIntegrator, RotateDisplacement, Selector, SolverSpec, axis_index
+from .schema import (
+    DynamicIntegrator,
+    FibreCellData,
+    FibreRegion,
+    RotateDisplacement,
+    Selector,
+    SolverSpec,
+    axis_index,
+)
 from .where import WhereError, where_mask
 
 __all__ = [
@@ -249,31 +255,153 @@ def _user_callable(scene: Scene, key: str, spec: str) -> Callable:
         raise scene.error(f"{key}: {e}") from None
 
 
-def _family_params(m, dtype, n_cells: int | None):
-    """The parameter pytree of a rubber/tissue model from its ``[material]`` keys (fibre
-    directions broadcast to ``(n_cells, 3)`` for the mesh)."""
+def _family_params(scene: Scene, mesh: Mesh, md: MeshData | None):
+    """The parameter pytree of a rubber/tissue model from its ``[material]`` keys (HGO
+    fibre directions per cell, ``(n_cells, ·)``: see :func:`_fibre_field`)."""
+    m = scene.spec.material
+    dtype = jnp.zeros(()).dtype
     fields = FAMILY_PARAMS[m.model]()._fields
-    vals = {k: jnp.asarray(getattr(m, k), dtype) for k in fields}
-    params = type(FAMILY_PARAMS[m.model]())(**vals)
-    if isinstance(params, HolzapfelGasserOgden) and n_cells is not None:
-        params = per_cell_fibres(params, n_cells)
-    return params
+    raw: dict = {}  # the mesh file's cell data, read once if a fibre key asks for it
+    vals = {
+        k: jnp.asarray(
+            _fibre_field(scene, k, getattr(m, k), mesh, md, raw)
+            if k in _FIBRE_KEYS
+            else getattr(m, k),
+            dtype,
+        )
+        for k in fields
+    }
+    return type(FAMILY_PARAMS[m.model]())(**vals)
 
 
-def _material(scene: Scene, dim: int, n_cells: int | None = None) -> tuple[Callable, Any]:
+_FIBRE_KEYS = ("a01", "a02")
+
+
+def _fibre_field(scene: Scene, key: str, spec, mesh: Mesh, md: MeshData | None, raw: dict):
+    """``[material].<key>`` (an HGO fibre direction) as a per-cell ``(n_cells, ·)`` array.
+
+    A vector is broadcast as given (ψ normalises it); ``{ cell_data = ... }`` and where
+    regions give normalised ``(n_cells, 3)`` rows (2D directions padded with z = 0).
+
+    Args:
+        spec: a vector (tuple of floats), a :class:`~jaxelastic.scene.schema.FibreCellData`
+            or a tuple of :class:`~jaxelastic.scene.schema.FibreRegion`.
+        raw: cache of the mesh file's volume cell data (filled on first use).
+    """
+    if isinstance(spec, FibreCellData):
+        a = _cell_data_fibres(scene, f"[material].{key}.cell_data", spec.cell_data, mesh, md, raw)
+    elif spec and isinstance(spec[0], FibreRegion):
+        a = _region_fibres(scene, key, spec, mesh)
+    else:
+        return np.broadcast_to(np.asarray(spec, float), (mesh.n_cells, len(spec)))
+    if a.shape[1] == 2:
+        a = np.concatenate([a, np.zeros((a.shape[0], 1))], axis=1)
+    return a / np.linalg.norm(a, axis=1, keepdims=True)
+
+
+def _region_fibres(scene: Scene, key: str, regions, mesh: Mesh) -> np.ndarray:
+    """Per-cell directions ``(n_cells, 2|3)`` from where regions of the cell centroids."""
+    cells = np.asarray(mesh.cells)[:, : mesh.dim + 1]  # the corners (P2/composite too)
+    centroids = np.asarray(mesh.points)[cells].mean(axis=1)
+    width = max(len(r.direction) for r in regions)
+    out = np.zeros((mesh.n_cells, width))
+    done = np.zeros(mesh.n_cells, dtype=bool)
+    for i, r in enumerate(regions):
+        if r.where is None:
+            mask = np.ones(mesh.n_cells, dtype=bool)
+        else:
+            try:
+                mask = where_mask(r.where, centroids)
+            except WhereError as e:
+                raise scene.error(f"[material].{key}[{i}].where: {e} in {r.where!r}") from None
+            if not mask.any():
+                raise scene.error(
+                    f"[material].{key}[{i}].where: {r.where!r} matches no cell centroid"
+                )
+        d = np.zeros(width)
+        d[: len(r.direction)] = r.direction
+        out[mask & ~done] = d
+        done |= mask
+    return out
+
+
+def _cell_data_fibres(scene, where: str, name: str, mesh: Mesh, md, raw: dict) -> np.ndarray:
+    """The ``(n_cells, 3)`` (2D: or ``(n_cells, 2)``) cell-data array ``name`` of the mesh
+    file, checked finite with nonzero rows (``where``: the key, for the messages)."""
+    if md is None:
+        raise scene.error(
+            f"{where}: a generated mesh has no cell data (use [mesh].file, one vector, or "
+            "where regions)"
+        )
+    if not raw:
+        raw.update(_file_cell_data(scene, where, md.source))
+    if name not in raw:
+        names = ", ".join(sorted(raw)) or "none"
+        raise scene.error(
+            f"{where}: the mesh file {md.source!r} has no cell data {name!r} (its cell data "
+            f"on the volume cells: {names})"
+        )
+    a, n = raw[name], mesh.n_cells
+    shapes = ((n, 3), (n, 2)) if mesh.dim == 2 else ((n, 3),)
+    if a.shape not in shapes:
+        raise scene.error(
+            f"{where}: cell data {name!r} of {md.source!r} has shape {a.shape}, expected "
+            f"(n_cells, 3) = ({n}, 3)"
+        )
+    a = np.asarray(a, dtype=float)
+    bad = np.flatnonzero(~np.isfinite(a).all(axis=1) | ~(np.abs(a) > 0).any(axis=1))
+    if bad.size:
+        raise scene.error(
+            f"{where}: cell data {name!r} of {md.source!r} has zero or non-finite rows "
+            f"(cells {', '.join(map(str, bad[:5]))}{', ...' if bad.size > 5 else ''}): every "
+            "cell needs a nonzero fibre direction"
+        )
+    return a
+
+
+def _file_cell_data(scene: Scene, where: str, path: str) -> dict:
+    """Cell-data arrays of the volume cells of mesh file ``path``, in the cell order of
+    :func:`~jaxelastic.io.read_mesh` (its volume blocks concatenated in file order).
+
+    :class:`~jaxelastic.io.MeshData` keeps no cell data, so the file is read again with
+    meshio. Returns ``{name: (n_cells, ...) array}``, possibly empty (arrays whose shapes
+    differ across the volume blocks are left out).
+    """
+    import meshio
+
+    try:
+        m = meshio.read(path)
+    except (Exception, SystemExit) as e:  # noqa: BLE001 — meshio may sys.exit on errors
+        raise scene.error(f"{where}: cannot read the cell data of {path!r} ({e})") from None
+    dims = [b.dim if len(b.data) else -1 for b in m.cells]
+    vol = [i for i, d in enumerate(dims) if d == max(dims)]
+    out = {}
+    for name, per_block in m.cell_data.items():
+        if len(per_block) != len(m.cells):
+            continue
+        try:
+            out[name] = np.concatenate([np.asarray(per_block[i]) for i in vol])
+        except ValueError:
+            continue
+    return out
+
+
+def _material(scene: Scene, mesh: Mesh, md: MeshData | None = None) -> tuple[Callable, Any]:
     """ψ and its parameters from ``[material]``, checked at F = I (finite ψ and P).
 
     Args:
-        scene: the scene; dim: mesh dimension; n_cells: mesh cells (to broadcast shared
-            fibre directions of ``holzapfel_gasser_ogden``).
+        scene: the scene; mesh: the rest mesh; md: its file's data (HGO fibre directions
+            from cell data), or None for a generator.
     """
     m = scene.spec.material
     model = m.model
+    dim = mesh.dim
     if model in FAMILIES:
         psi = FAMILIES[model]
-        params = _family_params(m, jnp.zeros(()).dtype, None)
-        _check_at_identity(scene, psi, params, dim)
-        return psi, _family_params(m, jnp.zeros(()).dtype, n_cells)
+        params = _family_params(scene, mesh, md)
+        first = jax.tree_util.tree_map(lambda v: v[0] if v.ndim else v, params)
+        _check_at_identity(scene, psi, first, dim)  # one cell's parameters
+        return psi, params
     psi = BUILTIN[model] if ":" not in model else _user_callable(scene, "[material].model", model)
     if m.E is not None:
         try:
@@ -554,7 +682,7 @@ def build(scene) -> Built:
         problem = scene.spec.dim_problem(mesh.dim)
         if problem is not None:
             raise scene.error(problem)
-    psi, params = _material(scene, mesh.dim, mesh.n_cells)
+    psi, params = _material(scene, mesh, md)
     bc_fn, time_dep = _dirichlet(scene, mesh, md)
     f_ext = _external_forces(scene, mesh, md)
     dtype = mesh.points.dtype
