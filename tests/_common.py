@@ -1,5 +1,7 @@
 """Shared test data (imported by several test modules; not a test module itself)."""
 
+import json
+
 from jaxelastic import materials as M
 
 # every built-in model in every dimension its definition allows
@@ -21,3 +23,28 @@ TINY_SCENE = {
     "integrator": {"type": "static"},
     "output": {"probes": [[2.0, 0.5]]},
 }
+
+
+def scene_toml(data: dict) -> str:
+    """A scene dict as TOML text (the subset scenes need: scalars, vectors, inline tables,
+    tables and arrays of tables)."""
+
+    def val(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(val(a) for a in v) + "]"
+        if isinstance(v, dict):
+            return "{ " + ", ".join(f"{k} = {val(a)}" for k, a in v.items()) + " }"
+        return repr(v)
+
+    lines = [f"{k} = {val(v)}" for k, v in data.items() if not isinstance(v, (dict, list))]
+    for k, v in data.items():
+        if isinstance(v, dict):
+            lines += [f"[{k}]"] + [f"{a} = {val(b)}" for a, b in v.items()]
+        elif isinstance(v, list):
+            for entry in v:
+                lines += [f"[[{k}]]"] + [f"{a} = {val(b)}" for a, b in entry.items()]
+    return "\n".join(lines) + "\n"

@@ -23,7 +23,7 @@ import xml.etree.ElementTree as ET
 import meshio
 import numpy as np
 import pytest
-from _common import TINY_SCENE
+from _common import TINY_SCENE, scene_toml
 
 from jaxelastic import cli
 from jaxelastic.scene import (
@@ -52,32 +52,8 @@ BIG_BOX = {
 }
 
 
-def _toml(data: dict) -> str:
-    """A scene dict as TOML (the subset these scenes need)."""
-
-    def val(v):
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(val(a) for a in v) + "]"
-        if isinstance(v, dict):
-            return "{ " + ", ".join(f"{k} = {val(a)}" for k, a in v.items()) + " }"
-        return repr(v)
-
-    lines = [f"{k} = {val(v)}" for k, v in data.items() if not isinstance(v, (dict, list))]
-    for k, v in data.items():
-        if isinstance(v, dict):
-            lines += [f"[{k}]"] + [f"{a} = {val(b)}" for a, b in v.items()]
-        elif isinstance(v, list):
-            for entry in v:
-                lines += [f"[[{k}]]"] + [f"{a} = {val(b)}" for a, b in entry.items()]
-    return "\n".join(lines) + "\n"
-
-
 def _write(path, data: dict):
-    path.write_text(_toml(data))
+    path.write_text(scene_toml(data))
     return path
 
 

@@ -7,7 +7,7 @@ import sys
 import types
 
 import pytest
-from _common import TINY_SCENE
+from _common import TINY_SCENE, scene_toml
 
 from jaxelastic import cli
 from jaxelastic.scene import apply_overrides
@@ -17,33 +17,9 @@ TINY = TINY_SCENE
 
 
 def _scene_file(tmp_path, data=TINY, name="tiny.toml"):
-    """Write a scene dict as TOML (the subset of TOML these scenes need)."""
-
-    def val(v):
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(val(a) for a in v) + "]"
-        if isinstance(v, dict):
-            return "{ " + ", ".join(f"{k} = {val(a)}" for k, a in v.items()) + " }"
-        return repr(v)
-
-    lines = []
-    for k, v in data.items():
-        if not isinstance(v, (dict, list)):
-            lines.append(f"{k} = {val(v)}")
-    for k, v in data.items():
-        if isinstance(v, dict):
-            lines.append(f"[{k}]")
-            lines += [f"{a} = {val(b)}" for a, b in v.items()]
-        elif isinstance(v, list):
-            for entry in v:
-                lines.append(f"[[{k}]]")
-                lines += [f"{a} = {val(b)}" for a, b in entry.items()]
+    """Write a scene dict as TOML."""
     path = tmp_path / name
-    path.write_text("\n".join(lines) + "\n")
+    path.write_text(scene_toml(data))
     return path
 
 
