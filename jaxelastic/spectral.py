@@ -1,29 +1,30 @@
-"""Spectral functions of a symmetric matrix with finite derivatives at repeated eigenvalues.
+"""Spectral functions of ``C = FᵀF`` with finite derivatives at repeated principal stretches.
 
-For a symmetric ``(n, n)`` matrix ``C = V diag(c) Vᵀ`` and a scalar function ``h(c, a)``
-(``a`` a scalar parameter, e.g. an Ogden exponent):
+For a ``(n, n)`` matrix F with ``C = FᵀF = V diag(c) Vᵀ`` (``c = λ²``, the squared
+principal stretches) and a scalar function ``h(c, a)`` (``a`` a scalar parameter, e.g. an
+Ogden exponent):
 
-* :func:`spectral_sum` ``Σ_i h(c_i, a)`` — a symmetric function of the eigenvalues;
-* :func:`spectral_matrix` ``V diag(h(c, a)) Vᵀ`` — the isotropic matrix function.
+* :func:`stretch_sum` ``Σ_i h(c_i, a)`` — a symmetric function of the eigenvalues of C;
+* :func:`stretch_matrix` ``V diag(h(c, a)) Vᵀ`` — the isotropic matrix function of C.
 
-``jnp.linalg.eigh``'s own derivative divides by eigenvalue gaps and is NaN (or inf) when two
-eigenvalues coincide — at the rest state ``C = I`` and in uniaxial or equibiaxial stretch,
-the states every rubber test visits. Both functions here carry a ``jax.custom_jvp``:
+Both are evaluated from an SVD of F (``eigh`` of FᵀF would square the condition number and
+lose relative accuracy at small stretches). The derivatives of ``svd``/``eigh`` divide by
+eigenvalue gaps and are NaN (or inf) when two eigenvalues coincide — at the rest state
+``C = I`` and in uniaxial or equibiaxial stretch, the states every rubber test visits. Both
+functions carry a ``jax.custom_jvp``:
 
-* ``d Σ h(c_i) = ⟨V diag(∂h/∂c) Vᵀ, dC⟩ + Σ ∂h/∂a · da`` — a spectral matrix again;
-* ``d(V diag(h) Vᵀ) = V (Γ ∘ (Vᵀ dC V)) Vᵀ + V diag(∂h/∂a) Vᵀ da`` with the Daleckii–Krein
-  divided differences ``Γ_ij = (h(c_i) − h(c_j))/(c_i − c_j)``, replaced by ``∂h/∂c`` at the
-  midpoint when ``|c_i − c_j| ≤ 1e-5·max(1, |c_i|, |c_j|)`` (Daleckii & Krein 1965, *AMS
-  Transl.* 47:1; Bhatia, *Matrix Analysis*, 1997, Thm. V.3.3). The threshold balances the
-  round-off of the quotient (≈ ε/1e-5 ≈ 2e-11) against the midpoint error (≈ 1e-10·|h'''|).
+* ``d Σ h(c_i) = ⟨V diag(∂h/∂c) Vᵀ, dC⟩ + Σ ∂h/∂a · da`` — a matrix function again;
+* ``d(V diag(h) Vᵀ) = V (Γ ∘ (Vᵀ dC V)) Vᵀ + V diag(∂h/∂a) Vᵀ da`` with ``dC = Fᵀ dF +
+  dFᵀ F`` and the Daleckii–Krein divided differences ``Γ_ij = (h(c_i) − h(c_j))/(c_i −
+  c_j)``, replaced by ``∂h/∂c`` at the midpoint when ``|c_i − c_j| ≤ 1e-5·max(1, |c_i|,
+  |c_j|)`` (Daleckii & Krein 1965, *AMS Transl.* 47:1; Bhatia, *Matrix Analysis*, 1997,
+  Thm. V.3.3). The threshold balances the round-off of the quotient (≈ ε/1e-5 ≈ 2e-11)
+  against the midpoint error (≈ 1e-10·|h‴|).
 
-So ψ written with :func:`spectral_sum` has a finite gradient, Hessian and HVP in C (and
-mixed derivatives in ``a`` of every order) for every symmetric C, repeated eigenvalues
-included. Third derivatives in C differentiate ``eigh`` again and are not finite at
-repeated eigenvalues (no solver or fit here needs them).
-
-:func:`stretch_sum` and :func:`stretch_matrix` are the same functions of ``C = FᵀF`` taking
-F itself, evaluated from an SVD of F (accurate at small stretches).
+So ψ written with :func:`stretch_sum` has a finite gradient, Hessian and HVP in F (and
+mixed derivatives in ``a`` of every order), repeated stretches included. Third derivatives
+in F differentiate the SVD again and are not finite at repeated stretches (no solver or fit
+here needs them).
 
 ``h`` must be a hashable, jnp-traceable scalar function ``h(c, a) -> scalar`` (a module-level
 function); its derivatives are built once per ``h`` with ``jax.grad`` and cached.
@@ -37,13 +38,13 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-__all__ = ["spectral_sum", "spectral_matrix", "stretch_sum", "stretch_matrix", "power"]
+__all__ = ["stretch_sum", "stretch_matrix", "power"]
 
 _CLOSE = 1e-5  # relative eigenvalue gap below which Γ_ij uses the midpoint derivative
 
 
 def power(c, a):
-    """``h(c, a) = c^a`` (c > 0): with :func:`spectral_sum`, ``Σ c_i^a = tr(C^a)``."""
+    """``h(c, a) = c^a`` (c > 0): with :func:`stretch_sum`, ``Σ c_i^a = tr(C^a)``."""
     return c**a
 
 
@@ -62,60 +63,6 @@ def _d_a(h: Callable) -> Callable:
 def _on_eigenvalues(h, c, a):
     """``h`` applied to every eigenvalue ``c`` ``(n,)`` at the scalar ``a``."""
     return jax.vmap(h, in_axes=(0, None))(c, a)
-
-
-def _sym(A):
-    return 0.5 * (A + A.T)
-
-
-def _eigen_data(C):
-    """``(c, V)`` of the symmetric ``C`` (eigenvalues ascending, eigenvectors as columns)."""
-    return jnp.linalg.eigh(C)
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def spectral_sum(C: jax.Array, a, h: Callable) -> jax.Array:
-    """``Σ_i h(c_i, a)`` over the eigenvalues ``c_i`` of the symmetric ``C``.
-
-    Args:
-        C: ``(n, n)`` symmetric matrix (only its lower triangle is read by ``eigh``).
-        a: scalar parameter of ``h`` (differentiable).
-        h: scalar function ``h(c, a)`` (static; a module-level function such as
-            :func:`power`).
-
-    Returns:
-        Scalar; derivatives up to second order in C (any order in a) are finite at
-        repeated eigenvalues.
-    """
-    c = jnp.linalg.eigvalsh(C)
-    return jnp.sum(_on_eigenvalues(h, c, jnp.asarray(a, c.dtype)))
-
-
-@spectral_sum.defjvp
-def _spectral_sum_jvp(h, primals, tangents):
-    C, a = primals
-    dC, da = tangents
-    y = spectral_sum(C, a, h)
-    dy = jnp.sum(spectral_matrix(C, a, _d_c(h)) * _sym(dC)) + spectral_sum(C, a, _d_a(h)) * da
-    return y, dy
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def spectral_matrix(C: jax.Array, a, h: Callable) -> jax.Array:
-    """The isotropic matrix function ``V diag(h(c, a)) Vᵀ`` of the symmetric ``C``.
-
-    Args:
-        C: ``(n, n)`` symmetric matrix.
-        a: scalar parameter of ``h`` (differentiable).
-        h: scalar function ``h(c, a)`` (static).
-
-    Returns:
-        ``(n, n)`` symmetric matrix; its first derivatives (Daleckii–Krein) are finite at
-        repeated eigenvalues.
-    """
-    c, V = _eigen_data(C)
-    hc = _on_eigenvalues(h, c, jnp.asarray(a, c.dtype))
-    return (V * hc[None, :]) @ V.T
 
 
 def _divided_differences(h, c, a):
@@ -140,16 +87,6 @@ def _matrix_jvp(h, c, V, a, dC):
     return M, V @ (G * (V.T @ dC @ V)) @ V.T
 
 
-@spectral_matrix.defjvp
-def _spectral_matrix_jvp(h, primals, tangents):
-    C, a = primals
-    dC, da = tangents
-    c, V = _eigen_data(C)
-    M, dM = _matrix_jvp(h, c, V, a, _sym(dC))
-    return M, dM + spectral_matrix(C, a, _d_a(h)) * da
-
-
-# ------------------------------------------------ the same, from F (C = FᵀF) by an SVD
 def _right_singular(F):
     """``(c, V)`` of ``C = FᵀF`` from the SVD of F: ``c = σ²``, V the right singular vectors.
 
@@ -164,9 +101,9 @@ def _right_singular(F):
 def stretch_sum(F: jax.Array, a, h: Callable) -> jax.Array:
     """``Σ_i h(λ_i², a)`` over the principal stretches λ_i (singular values) of F.
 
-    The same function as ``spectral_sum(FᵀF, a, h)``, evaluated from an SVD of F for
-    accuracy at small stretches. Gradient ``∂/∂F = 2F·V diag(∂h/∂c) Vᵀ``; Hessian by
-    Daleckii–Krein on ``C = FᵀF`` (finite at repeated stretches).
+    Evaluated from an SVD of F for accuracy at small stretches. Gradient
+    ``∂/∂F = 2F·V diag(∂h/∂c) Vᵀ``; Hessian by Daleckii–Krein on ``C = FᵀF`` (finite at
+    repeated stretches).
 
     Args:
         F: ``(n, n)`` matrix; a: scalar parameter of ``h``; h: ``h(c, a)`` (static).
