@@ -60,15 +60,11 @@ def _check_inputs(pot: Potential, bc: Dirichlet, x0):
     for name, a in (("bc.mask", bc.mask), ("bc.values", bc.values)):
         if tuple(jnp.shape(a)) != shape:
             raise ValueError(f"{name} must have shape {shape} (n_nodes, dim), got {jnp.shape(a)}")
-    dt = jnp.result_type(pot.mesh.points)
-    if (
-        jnp.issubdtype(jnp.result_type(bc.values), jnp.floating)
-        and jnp.result_type(bc.values) != dt
-        and jnp.finfo(jnp.result_type(bc.values)).bits > jnp.finfo(dt).bits
-    ):
+    dt, vt = jnp.result_type(pot.mesh.points), jnp.result_type(bc.values)
+    if jnp.issubdtype(vt, jnp.floating) and jnp.finfo(vt).bits > jnp.finfo(dt).bits:
         raise ValueError(
-            f"bc.values has dtype {jnp.result_type(bc.values)} but the mesh is {dt}: build "
-            f"the Dirichlet data from the mesh (je.loads.fix) or cast the values to {dt}"
+            f"bc.values has dtype {vt} but the mesh is {dt}: build the Dirichlet data from "
+            f"the mesh (je.loads.fix) or cast the values to {dt}"
         )
     if x0 is None:
         return pot.mesh.points
