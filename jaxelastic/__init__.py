@@ -11,6 +11,7 @@ The library never changes JAX's global configuration: enable float64 yourself wi
 """
 
 from . import benchmarks as benchmarks
+from . import contact as contact
 from . import dynamics as dynamics
 from . import fitting as fitting
 from . import io as io
@@ -52,6 +53,7 @@ from .solvers import AMG as AMG
 from .solvers import CG as CG
 from .solvers import Direct as Direct
 from .solvers import ImplicitAdjoint as ImplicitAdjoint
+from .solvers import Multilevel as Multilevel
 from .solvers import Newton as Newton
 from .solvers import Solution as Solution
 from .solvers import SolveError as SolveError

@@ -10,6 +10,13 @@ a TOML file or the name of a shipped scene (``jaxelastic scenes`` lists them);
 Schema of a scene file (``jaxelastic schema > scene.schema.json``) for editors with TOML
 schema support (taplo / Even Better TOML); the reference is ``docs/scenes.md``.
 
+After ``run`` and ``fit`` a short table on stdout says what was solved and what came out
+(mesh, material, solver, iterations, largest displacement, reaction vs applied load,
+energy, time split into compile and run, the files written; see
+``docs/guide/outputs.md``); with ``--json`` stdout is one JSON line instead (``status``,
+``out``, ``summary``, ``wall_time``, ``compile_time``; ``E`` and ``nu`` of a fit), for
+scripts. Progress goes to stderr (``--no-progress`` silences it).
+
 The CLI, and only the CLI, changes JAX's configuration: it enables float64 and JAX's
 persistent compilation cache in ``$JAXELASTIC_CACHE_DIR`` (default
 ``$XDG_CACHE_HOME/jaxelastic/jax`` or ``~/.cache/jaxelastic/jax``; ``--no-cache`` turns
@@ -59,6 +66,11 @@ def _parse_value(text: str):
 
 
 def _parser() -> argparse.ArgumentParser:
+    """The argument parser of every sub-command.
+
+    Long because: one flat declaration of the sub-commands and their options reads better
+    than the same declarations spread over helpers.
+    """
     from . import __version__
 
     p = argparse.ArgumentParser(
@@ -98,6 +110,11 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--no-cache", action="store_true", help="do not use the persistent compilation cache"
     )
+    r.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON line (status, output directory, timings) instead of the table",
+    )
     f = sub.add_parser(
         "fit",
         help="fit E and nu to observed shapes as the scene's [fit] section says",
@@ -116,6 +133,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     f.add_argument("--no-progress", action="store_true", help="no progress bar or messages")
     f.add_argument("--no-cache", action="store_true", help="no persistent compilation cache")
+    f.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON line (status, output directory, E, nu) instead of the table",
+    )
     sub.add_parser(
         "crosscheck",
         help="check autodiff stress/forces/HVP against hand derivations and finite "
@@ -145,7 +167,8 @@ def _enable_jax(cache: bool) -> None:
             print(f"jaxelastic: warning: no compilation cache ({e})", file=sys.stderr)
             return
         jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        # every executable: the small ones (op-by-op, outputs) add up to seconds per run
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
@@ -177,50 +200,26 @@ def _print_schema() -> int:
     return 0
 
 
-def _highlights(s: dict) -> str:
-    lines = [f"scene {s['scene']['name']!r}: {s['status']}"]
-    m = s["mesh"]
-    lines.append(f"  mesh: {m['n_nodes']} nodes, {m['n_cells']} {m['element']} cells")
-    t = s["timings"]
-    if "dynamic" in s:
-        d = s["dynamic"]
-        settled = f"settled at t = {d['settle_time']:.3g} s" if d["settled"] else "not settled"
-        lines.append(
-            f"  dynamics: {d['steps']} steps to t = {d['t_end']:.4g} s, {settled}; "
-            f"Newton {d['newton_steps_total']}, CG {d['linear_iterations_total']} in total"
-        )
-        if t.get("first_step_incl_compile") is not None:
-            lines.append(
-                f"  time: first step {t['first_step_incl_compile']:.2f} s (incl. compile), "
-                f"then {1e3 * t['step_median']:.1f} ms/step (median)"
-            )
-        u = d["tip"]["displacement"]
-        lines.append(f"  tip displacement (node {d['tip']['node']}): {_fmt_vec(u)} m")
-    if "comparison" in s:
-        c = s["comparison"]
-        lines.append(
-            f"  static vs dynamic: max nodal distance {c['max_nodal_distance']:.3e} m "
-            f"({c['relative_to_tip_deflection']:.2e} of the tip deflection "
-            f"{c['tip_deflection_static']:.4g} m)"
-        )
-    if "static" in s and "dynamic" not in s:
-        st = s["static"]
-        lines.append(
-            f"  static: Newton {st['newton_steps']}, CG {st['linear_iterations']}, final "
-            f"residual {st['final_residual']:.2e}, solve {t['solve_incl_compile']:.2f} s "
-            "(incl. compile)"
-        )
-    for i, p in enumerate(s.get("probes", [])):
-        lines.append(
-            f"  probe {i} at {_fmt_vec(p['point'])} (node {p['node']}): u = "
-            f"{_fmt_vec(p['displacement'])}"
-        )
-    lines.append(f"  total {t['total']:.1f} s; outputs in {s['outputs']['directory']}")
-    return "\n".join(lines)
+def _report(summary: dict, args, clock, t0: float, fit: bool = False) -> None:
+    """Print the result of a run or fit on stdout: the table for people, or with
+    ``--json`` one JSON line (status, out, summary path, timings; E and nu of a fit)."""
+    from .scene.outputs import fit_table, run_table
 
-
-def _fmt_vec(v) -> str:
-    return "[" + ", ".join(f"{a:.5g}" for a in v) + "]"
+    wall = time.perf_counter() - t0
+    if getattr(args, "json", False):
+        line = dict(
+            status=summary["status"],
+            out=summary["outputs"]["directory"],
+            summary=summary["outputs"].get("summary"),
+            wall_time=wall,
+            compile_time=clock.seconds,
+        )
+        if fit:
+            line.update(E=summary["result"]["E"], nu=summary["result"]["nu"])
+        print(json.dumps(line))
+        return
+    table = fit_table if fit else run_table
+    print(table(summary, compile_s=clock.seconds, wall_s=wall))
 
 
 def _run(args) -> int:
@@ -235,15 +234,18 @@ def _run(args) -> int:
         overrides[key.strip()] = _parse_value(val.strip())
     _enable_jax(cache=not args.no_cache)
     from .scene import run_scene
+    from .scene.outputs import CompileClock
     from .solvers import SolveError
 
     t0 = time.perf_counter()
+    clock = CompileClock()
     try:
         scene = load_scene(args.scene, overrides=overrides)
         out = args.out or os.path.join("jaxelastic-out", scene.name)
         if args.command == "fit" or scene.get("fit") is not None:
-            return _fit(scene, out, args, t0)
-        summary = run_scene(scene, out, progress=not args.no_progress)
+            return _fit(scene, out, args, t0, clock)
+        with clock:
+            summary = run_scene(scene, out, progress=not args.no_progress)
     except SceneError as e:
         print(f"jaxelastic: error: {e}", file=sys.stderr)
         return 2
@@ -253,22 +255,19 @@ def _run(args) -> int:
     except OSError as e:  # e.g. an output directory that cannot be created or written
         print(f"jaxelastic: error: {e}", file=sys.stderr)
         return 2
-    if not args.no_progress:
-        print(_highlights(summary))
-        print(f"  wall time of the command: {time.perf_counter() - t0:.1f} s")
-    else:
-        print(json.dumps({"status": summary["status"], "out": summary["outputs"]["directory"]}))
+    _report(summary, args, clock, t0)
     return 0
 
 
-def _fit(scene, out: str, args, t0: float) -> int:
+def _fit(scene, out: str, args, t0: float, clock) -> int:
     """``jaxelastic fit`` (or ``run`` on a scene with ``[fit]``): see jaxelastic.scene.fit."""
     from .scene import SceneError
-    from .scene.fit import highlights, run_fit
+    from .scene.fit import run_fit
     from .solvers import GradientError, SolveError
 
     try:
-        summary = run_fit(scene, out, progress=not args.no_progress)
+        with clock:
+            summary = run_fit(scene, out, progress=not args.no_progress)
     except SceneError as e:
         print(f"jaxelastic: error: {e}", file=sys.stderr)
         return 2
@@ -278,21 +277,7 @@ def _fit(scene, out: str, args, t0: float) -> int:
     except OSError as e:
         print(f"jaxelastic: error: {e}", file=sys.stderr)
         return 2
-    if not args.no_progress:
-        print(highlights(summary))
-        print(f"  wall time of the command: {time.perf_counter() - t0:.1f} s")
-    else:
-        r = summary["result"]
-        print(
-            json.dumps(
-                dict(
-                    status=summary["status"],
-                    out=summary["outputs"]["directory"],
-                    E=r["E"],
-                    nu=r["nu"],
-                )
-            )
-        )
+    _report(summary, args, clock, t0, fit=True)
     return 0
 
 

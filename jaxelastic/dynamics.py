@@ -42,6 +42,7 @@ segments 13; forward mode: None 2,345 (element Hessians), ``"step"`` 106, segmen
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -76,6 +77,7 @@ __all__ = [
     "simulate",
     "kinetic_energy",
     "total_energy",
+    "static_potential",
 ]
 
 
@@ -154,6 +156,10 @@ def _step_potential(base: Potential, state: State, integ: Integrator, bdf2_now):
         kw.update(x_prev=x_ref, mass_damping=integ.alpha * dt_factor)
     if integ.beta:
         kw.update(x_prev=x_ref, stiffness_damping=integ.beta * dt_factor)
+    if base.contact is not None:  # friction lagged at x_n; obstacles at t + h
+        c = base.contact.at_time(state.t)
+        c = c.lag(x) if c.friction is not None else c
+        kw.update(contact=c.at_time(state.t + h))
     return base.replace(**kw)
 
 
@@ -163,6 +169,8 @@ def _start(pot: Potential, state: State, warm):
     where x_n is better."""
     x_tilde = pot.x_tilde
     assert x_tilde is not None  # set by _step_potential
+    if pot.contact is not None:  # a moving obstacle may have swept over x_n
+        state = state._replace(x=pot.contact.make_feasible(state.x))
     e_tilde = potential_value(pot, x_tilde)
     e_n = potential_value(pot, state.x)
     use_tilde = jnp.isfinite(e_tilde) & ~(e_tilde > e_n)
@@ -176,10 +184,14 @@ def _start(pot: Potential, state: State, warm):
 def _advance(
     base: Potential, state: State, bc: Dirichlet, integ: Integrator, solver, adjoint, warm
 ):
-    bdf2_now = state.n > 0
-    pot = _step_potential(base, state, integ, bdf2_now)
+    pot = _step_potential(base, state, integ, state.n > 0)
     res = solve(pot, bc, x0=_start(pot, state, warm), solver=solver, adjoint=adjoint, throw=False)
-    x_new = res.x
+    return _next_state(state, res.x, res.ok, integ), res
+
+
+def _next_state(state: State, x_new, ok, integ: Integrator) -> State:
+    """The state after a step to ``x_new``; ``state`` itself unless ``ok``."""
+    bdf2_now = state.n > 0
     h = integ.h
     if integ.method == "bdf2":
         v_new = jnp.where(
@@ -190,8 +202,42 @@ def _advance(
     else:
         v_new = (x_new - state.x) / h
     new = State(x_new, v_new, state.x, state.v, state.t + h, state.n + 1)
-    new = jax.tree_util.tree_map(lambda a, b: jnp.where(res.ok, a, b), new, state)
-    return new, res
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new, state)
+
+
+_SCALARS = ("inertia_weight", "mass_damping", "stiffness_damping")
+
+
+def _strong_scalars(pot: Potential) -> Potential:
+    """``pot`` with its scalar weights as strongly typed arrays of the mesh's dtype (a
+    Python float would come out of jit weakly typed: another compilation of the solve)."""
+    dt = pot.mesh.points.dtype
+    kw = {k: jnp.asarray(getattr(pot, k), dt) for k in _SCALARS if getattr(pot, k) is not None}
+    return pot.replace(**kw)
+
+
+def static_potential(base: Potential, integ: Integrator) -> Potential:
+    """The static potential of ``base`` in the pytree structure of :func:`simulate`'s step
+    potentials: ``x̃ = x_prev = X`` with zero inertia and damping weights.
+
+    Π is exactly the static one (``E − f_extᵀx``: the extra terms are ``0·(…)``), and a
+    :func:`~jaxelastic.solve` of it reuses the compiled Newton solve of the time steps
+    instead of compiling its own (a scene's static comparison does that). The rigid-body
+    check of static solves applies (zero inertia weight).
+
+    Args:
+        base: the dynamic potential (with ``mass``); integ: the :class:`Integrator` whose
+            step potentials it must match (its damping terms).
+    """
+    _mass(base)
+    X = base.mesh.points
+    zero = jnp.zeros((), X.dtype)
+    kw: dict[str, Any] = dict(x_tilde=X, inertia_weight=zero)
+    if integ.alpha:
+        kw.update(x_prev=X, mass_damping=zero)
+    if integ.beta:
+        kw.update(x_prev=X, stiffness_damping=zero)
+    return base.replace(**kw)
 
 
 def _check_dynamic(base: Potential, integ: Integrator):
@@ -361,12 +407,18 @@ def _energies(base: Potential, x, v):
     return jnp.stack([ke, el, ext])
 
 
-def _step_and_energies(base, state, bc, integ, solver, adjoint):
-    new, res = _advance(base, state, bc, integ, solver, adjoint, None)
-    return new, res, _energies(base, new.x, new.v)
+@functools.partial(jax.jit, static_argnames="integ")
+def _prepare_step(base: Potential, state: State, integ: Integrator):
+    """The step potential and Newton's start of :func:`simulate`'s step."""
+    pot = _strong_scalars(_step_potential(base, state, integ, state.n > 0))
+    return pot, _start(pot, state, None)
 
 
-_step_jit = jax.jit(_step_and_energies, static_argnames=("integ", "solver", "adjoint"))
+@functools.partial(jax.jit, static_argnames="integ")
+def _finish_step(base: Potential, state: State, x_new, status, integ: Integrator):
+    """The new state of :func:`simulate`'s step and its energies."""
+    new = _next_state(state, x_new, status == Status.SUCCESS, integ)
+    return new, _energies(base, new.x, new.v)
 
 
 def _step_record(t: float, res: Solution, en, wall: float) -> dict:
@@ -383,6 +435,28 @@ def _step_record(t: float, res: Solution, en, wall: float) -> dict:
         elastic=float(en[1]),
         external=float(en[2]),
     )
+
+
+class _NoBar:
+    """A silent stand-in for a tqdm bar."""
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress_bar(total: int, progress: bool):
+    """A tqdm bar over ``total`` steps, or a silent stand-in when ``progress`` is off or
+    tqdm is not installed (a lean install)."""
+    if progress:
+        try:
+            from tqdm import tqdm
+        except ImportError:
+            return _NoBar()
+        return tqdm(total=total, desc="time steps", leave=False)
+    return _NoBar()
 
 
 def simulate(
@@ -417,21 +491,23 @@ def simulate(
         ``wall_time`` [s] and the energies of the new state ``kinetic``, ``elastic``,
         ``external`` (``−f_extᵀ(x − X)``).
     """
-    from tqdm import tqdm
-
     _check_dynamic(pot, integ)
     if is_traced(pot, state):
         raise ValueError("simulate is a host loop: call it outside jit (use rollout inside)")
     bc_at = bc if callable(bc) else (lambda t: bc)
     solver = bind_solver(solver, pot.mesh, bc_at(float(state.t) + integ.h))
-    adjoint = ImplicitAdjoint()
     records: list[dict] = []
-    bar = tqdm(total=int(n_steps), desc="time steps", disable=not progress, leave=False)
+    bar = _progress_bar(int(n_steps), progress)
     try:
         for _ in range(int(n_steps)):
             t_next = float(state.t) + integ.h
             t0 = time.perf_counter()
-            new, res, en = _step_jit(pot, state, bc_at(t_next), integ, solver, adjoint)
+            # three compiled pieces: the step potential, the solve (one compilation shared
+            # with every solve of a potential of this structure, e.g. static_potential)
+            # and the new state with its energies
+            step_pot, x_start = _prepare_step(pot, state, integ)
+            res = solve(step_pot, bc_at(t_next), x0=x_start, solver=solver, throw=False)
+            new, en = _finish_step(pot, state, res.x, res.status, integ)
             jax.block_until_ready(new)
             rec = _step_record(t_next, res, en, time.perf_counter() - t0)
             records.append(rec)

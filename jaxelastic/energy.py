@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
-from .kinematics import b_bar, deformation_gradients, f_bar
+from .kinematics import b_bar, cofactor, deformation_gradients, det, displacements, f_bar
 
 __all__ = [
     "first_piola",
@@ -55,6 +55,7 @@ __all__ = [
     "hvp",
     "element_forces",
     "element_hessians",
+    "element_hessians_reference",
     "element_gradient_kernel",
     "project_psd",
     "assemble",
@@ -361,20 +362,30 @@ def energy(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     return jnp.sum(mesh.weights * _energy_densities(psi, x, mesh, params))
 
 
-def _cell_grad(xe, dN):
-    """``F_q = Σ_k x_k ⊗ ∇N_k(q)`` for one cell: xe ``(k, d)``, dN ``(q, k, d)`` → ``(q, d, d)``.
+def _cell_grad(ue, dN):
+    """``∇u_q = Σ_k u_k ⊗ ∇N_k(q)`` for one cell: ue ``(k, d)``, dN ``(q, k, d)`` → ``(q, d, d)``.
 
-    P1 keeps the einsum; for more nodes the sum over k is unrolled into broadcasts, which XLA
-    fuses into one loop: the vmapped einsum becomes a batched dot_general of tiny matrices,
-    measured 15× slower on CPU for tet10 (50 ms vs 3 ms on 10k cells).
+    ``ue`` is any nodal field of the cell: displacements (F = I + ∇u, :func:`_cell_F`) or an
+    HVP direction (dF). P1 keeps the einsum; for more nodes the sum over k is unrolled into
+    broadcasts, which XLA fuses into one loop: the vmapped einsum becomes a batched
+    dot_general of tiny matrices, measured 15× slower on CPU for tet10 (50 ms vs 3 ms on
+    10k cells).
     """
-    k, d = xe.shape
+    k, d = ue.shape
     if k == d + 1:
-        return jnp.einsum("ka,qkb->qab", xe, dN)
-    out = xe[0][None, :, None] * dN[:, 0, None, :]
+        return jnp.einsum("ka,qkb->qab", ue, dN)
+    out = ue[0][None, :, None] * dN[:, 0, None, :]
     for a in range(1, k):
-        out = out + xe[a][None, :, None] * dN[:, a, None, :]
+        out = out + ue[a][None, :, None] * dN[:, a, None, :]
     return out
+
+
+def _cell_F(ue, dN):
+    """``F_q = I + Σ_k u_k ⊗ ∇N_k(q)`` from the cell's nodal displacements ``ue`` ``(k, d)``:
+    the round-off does not grow with the coordinates (see
+    :func:`~jaxelastic.kinematics.deformation_gradients`)."""
+    d = ue.shape[1]
+    return _cell_grad(ue, dN) + jnp.eye(d, dtype=ue.dtype)[None]
 
 
 def _cell_contract(w, Pq, dN):
@@ -394,11 +405,23 @@ def _cell_contract(w, Pq, dN):
 
 
 def _fbar_element_energy(psi, form: str = "fbar"):
+    """The F̄ element energy ``(ue, dN, w, params) ↦ Σ_q w_q ψ(F̄_q)`` of one cell."""
     fmap = b_bar if form == "bbar" else f_bar
 
-    def ee(xe, dN, w, p):
-        F = fmap(_cell_grad(xe, dN), w)
+    def ee(ue, dN, w, p):
+        F = fmap(_cell_F(ue, dN), w)
         return jnp.sum(w * jax.vmap(psi, in_axes=(0, None))(F, p))
+
+    return ee
+
+
+def _element_energy(psi, form: str | None = None):
+    """The element energy ``(ue, dN, w, params) ↦ Σ_q w_q ψ(F_q)`` (F̄ under a formulation)."""
+    if form:
+        return _fbar_element_energy(psi, form)
+
+    def ee(ue, dN, w, p):
+        return jnp.sum(w * jax.vmap(psi, in_axes=(0, None))(_cell_F(ue, dN), p))
 
     return ee
 
@@ -410,17 +433,18 @@ def _is_fbar(mesh) -> str | None:
 
 
 def element_gradient_kernel(psi, fbar: str | None = None):
-    """The per-element energy gradient ``(xe (k, d), dN (q, k, d), w (q,), params) ↦
-    ∂E_e/∂xe (k, d)`` of ψ (autodiff P contracted with the shape-function gradients; with
-    ``fbar="fbar"``/``"bbar"`` the gradient of the F̄ element energy). Unbatched: vmap it
-    over cells (as :func:`element_forces` does)."""
+    """The per-element energy gradient ``(ue (k, d), dN (q, k, d), w (q,), params) ↦
+    ∂E_e/∂x_e (k, d)`` of ψ, with ``ue`` the element's nodal *displacements* ``x_e − X_e``
+    (autodiff P at ``F = I + Σ u_k ⊗ ∇N_k``, contracted with the shape-function gradients;
+    with ``fbar="fbar"``/``"bbar"`` the gradient of the F̄ element energy). Unbatched: vmap
+    it over cells (as :func:`element_forces` does)."""
     if fbar:
         return jax.grad(_fbar_element_energy(psi, fbar))
     P = first_piola(psi)
 
-    def fe(xe, dN, w, p):
-        # xe (k, d), dN (q, k, d), w (q,) -> ∂E_e/∂xe (k, d)
-        F = _cell_grad(xe, dN)
+    def fe(ue, dN, w, p):
+        # ue (k, d), dN (q, k, d), w (q,) -> ∂E_e/∂xe (k, d)
+        F = _cell_F(ue, dN)
         Pq = jax.vmap(P, in_axes=(0, None))(F, p)  # (q, d, d)
         return _cell_contract(w, Pq, dN)
 
@@ -438,9 +462,9 @@ def element_forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
 
 
 def _element_forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
-    xe = x[mesh.cells]
+    ue = displacements(x, mesh)[mesh.cells]
     fe = element_gradient_kernel(psi, _is_fbar(mesh))
-    return _per_cell(fe, params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)
+    return _per_cell(fe, params, mesh.n_cells)(ue, mesh.dN, mesh.weights, params)
 
 
 _MAX_UNROLLED_VALENCE = 256  # above this, gather (n_nodes, valence, d) then sum
@@ -479,14 +503,14 @@ def _element_hvp(psi, fbar: str | None = None):
     if fbar:
         g = jax.grad(_fbar_element_energy(psi, fbar))
 
-        def he_fbar(xe, ve, dN, w, p):
-            return jax.jvp(lambda y: g(y, dN, w, p), (xe,), (ve,))[1]
+        def he_fbar(ue, ve, dN, w, p):
+            return jax.jvp(lambda y: g(y, dN, w, p), (ue,), (ve,))[1]
 
         return he_fbar
     P = first_piola(psi)
 
-    def he(xe, ve, dN, w, p):
-        F = _cell_grad(xe, dN)
+    def he(ue, ve, dN, w, p):
+        F = _cell_F(ue, dN)
         dF = _cell_grad(ve, dN)
         Pp = lambda f: jax.vmap(P, in_axes=(0, None))(f, p)
         _, dP = jax.jvp(Pp, (F,), (dF,))
@@ -499,15 +523,17 @@ def hvp(psi: Psi, x: jax.Array, v: jax.Array, mesh, params) -> jax.Array:
     """Hessian-vector product ``(∂²E/∂x²)·v`` by forward-over-reverse, ``(n_nodes, d)``.
 
     Never forms a Hessian: per element, ``dP = jvp(∂ψ/∂F)(F; dF)`` with ``dF = Σ v_a ⊗ ∇N_a``.
-    ``v``: ``(n_nodes, d)`` direction [length]; other args as :func:`energy_densities`.
+    ``v``: ``(n_nodes, d)`` direction [length], cast to the mesh's dtype; other args as
+    :func:`energy_densities`.
     """
     _check_call("je.hvp", psi, x, mesh, params, v=v)
-    xe, ve = x[mesh.cells], v[mesh.cells]
+    dtype = mesh.points.dtype
+    ue, ve = displacements(x, mesh)[mesh.cells], v.astype(dtype)[mesh.cells]
     fn = jax.vmap(
         _element_hvp(psi, _is_fbar(mesh)),
         in_axes=(0, 0, 0, 0, cell_params_axes(params, mesh.n_cells)),
     )
-    return assemble(mesh, fn(xe, ve, mesh.dN, mesh.weights, params))
+    return assemble(mesh, fn(ue, ve, mesh.dN, mesh.weights, params))
 
 
 def project_psd(K: jax.Array, floor: float = 0.0) -> jax.Array:
@@ -522,28 +548,239 @@ def project_psd(K: jax.Array, floor: float = 0.0) -> jax.Array:
     return jnp.einsum("...ij,...j,...kj->...ik", Q, lam, Q)
 
 
-def _element_hessian(psi, fbar: str | None = None):
-    if fbar:
-        ee = _fbar_element_energy(psi, fbar)
+# ----------------------------------------------------------------------- element Hessians
+#
+# Kₑ = Σ_q B_qᵀ Ĉ_q B_q (+ a rank-3 element term under F-bar/B-bar), with B_q the
+# (d², k·d) map δu ↦ δF_q = Σ_k δu_k ⊗ ∇N_k(q) and Ĉ_q a (d, d, d, d) tensor per quadrature
+# point: w_q ∂²ψ/∂F² for the standard formulation. The Kronecker structure of B_q
+# (B[(a,b),(k,x)] = δ_ax ∇N_k,b) is used, never B itself: see _contract_hessian.
 
-        def ke_fbar(xe, dN, w, p):
-            k, d = xe.shape
-            return jax.hessian(ee)(xe, dN, w, p).reshape(k * d, k * d)
 
-        return ke_fbar
+def _always(cells) -> jax.Array:
+    """A traced predicate that is true for every valid mesh (indices are ≥ 0), for
+    :func:`_materialize`."""
+    return jnp.min(cells[:1]) >= 0
 
-    def ke(xe, dN, w, p):
-        F = _cell_grad(xe, dN)
-        C = jax.vmap(jax.hessian(psi, argnums=0), in_axes=(0, None))(F, p)  # (q,d,d,d,d)
-        k, d = xe.shape
-        K = jnp.einsum("q,qkb,qabcd,qld->kalc", w, dN, C, dN)  # (k, d, k, d)
-        return K.reshape(k * d, k * d)
 
-    return ke
+def _materialize(a, pred):
+    """``a`` unchanged, but computed once and stored before its consumers read it.
+
+    XLA:CPU fuses a producer into every consumer loop that reads it, recomputing it per
+    read: the autodiff ``∂²ψ/∂F²`` (hundreds of operations per point) fused into the
+    contraction was recomputed for each of the (k·d)² entries (measured 1.8× slower for
+    tet4 than with Ĉ stored). ``lax.optimization_barrier`` does not stop that fusion on
+    CPU; a conditional does. ``pred`` (:func:`_always`, computed outside any per-cell
+    vmap so that the conditional stays one) is always true; the other branch gives NaN,
+    so it could never be taken silently.
+    """
+    return jax.lax.cond(
+        pred,
+        lambda t: t,
+        lambda t: jax.tree_util.tree_map(lambda b: jnp.full_like(b, jnp.nan), t),
+        a,
+    )
+
+
+def _contract_hessians(Ch, dN, pred):
+    """``K[c,k,a,l,x] = Σ_q Σ_{b,e} ∇N_k,b(q) Ĉ_q[a,b,x,e] ∇N_l,e(q)`` for every cell.
+
+    Args:
+        Ch: ``(c, q, d, d, d, d)`` per-point tensors Ĉ (quadrature weights included).
+        dN: ``(c, q, k, d)`` shape-function gradients.
+        pred: :func:`_always` of the mesh (for :func:`_materialize`).
+
+    Returns:
+        ``(c, k, d, k, d)`` element Hessians (node-major dofs).
+
+    Written as fused broadcasts, not as ``einsum``: over cells, the einsum
+    ``"cqkb,cqabxe,cqle->ckalx"`` is a batched dot_general of tiny matrices on XLA:CPU
+    (measured on 100k tet4: 262 ms einsum vs 45 ms unrolled; see scripts/bench_kernels.py).
+    P1 (one point): the d² (b, e) terms are unrolled into one fused loop over the output.
+    More points: two stages, ``T[c,q,k,a,x,e] = Σ_b ∇N_k,b Ĉ[a,b,x,e]`` (d terms) and then
+    the q·d terms of ``Σ_{q,e} T[q,k,a,x,e] ∇N_l,e`` — k·d⁴·q·(1 + k/d) multiply-adds
+    instead of the (k·d)²·q·d² of the naive sum.
+    """
+    _, q, k, d = dN.shape
+    Ch = _materialize(Ch, pred)
+    if q == 1:
+        N = dN[:, 0]  # (c, k, d)
+        out = None
+        for b in range(d):
+            Nb = N[:, :, None, None, None, b]  # (c, k, 1, 1, 1)
+            for e in range(d):
+                term = Nb * Ch[:, 0, None, :, b, None, :, e] * N[:, None, None, :, None, e]
+                out = term if out is None else out + term
+        assert out is not None
+        return out
+    T = dN[:, :, :, None, None, None, 0] * Ch[:, :, None, :, 0, :, :]  # (c, q, k, a, x, e)
+    for b in range(1, d):
+        T = T + dN[:, :, :, None, None, None, b] * Ch[:, :, None, :, b, :, :]
+    # T is not materialised: storing it (k/d times the size of Ĉ) measured 1.2× slower
+    out = None
+    for i in range(q):
+        for e in range(d):
+            term = T[:, i, :, :, None, :, e] * dN[:, i, None, None, :, None, e]
+            out = term if out is None else out + term
+    assert out is not None
+    return out
+
+
+def _outer(X, Y):
+    """``(X ⊗ Y)[a,b,x,e] = X[a,b]·Y[x,e]`` of ``(..., d, d)`` matrices."""
+    return X[..., :, :, None, None] * Y[..., None, None, :, :]
+
+
+def _outer_swap(X, Y):
+    """``(X ⊠ Y)[a,b,x,e] = X[x,b]·Y[a,e]`` (the index pattern of ``tr(F⁻¹δF F⁻¹δF)``)."""
+    return jnp.swapaxes(X, -1, -2)[..., None, :, :, None] * Y[..., :, None, None, :]
+
+
+def _det_hessian(F):
+    """``∂²J/∂F∂F`` of one ``(d, d)`` F, ``(d, d, d, d)``: ``ε_{axi} ε_{bej} F_ij`` in 3D,
+    ``ε_ax ε_be`` in 2D (polynomial: exact also at J ≤ 0)."""
+    d = F.shape[-1]
+    if d == 2:
+        eps = jnp.array([[0.0, 1.0], [-1.0, 0.0]], dtype=F.dtype)
+        return eps[:, None, :, None] * eps[None, :, None, :]
+    eps = np.zeros((3, 3, 3))
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        eps[i, j, k], eps[j, i, k] = 1.0, -1.0
+    E = jnp.asarray(eps, dtype=F.dtype)  # E[a, x, i]
+    out = None
+    for i in range(3):
+        for j in range(3):
+            term = E[:, None, :, None, i] * E[None, :, None, :, j] * F[i, j]
+            out = term if out is None else out + term
+    return out
+
+
+def _ddot(C, X):
+    """``(C : X)[a,b] = Σ_{x,e} C[a,b,x,e] X[x,e]`` for ``(q, d, d, d, d)`` C and ``(q, d, d)``
+    X, unrolled (no tiny dot_general)."""
+    d = X.shape[-1]
+    out = None
+    for x in range(d):
+        for e in range(d):
+            term = C[:, :, :, x, e] * X[:, None, None, x, e]
+            out = term if out is None else out + term
+    return out
+
+
+def _fbar_hessian_terms(psi, F, w, p, form: str, pred):
+    """Ĉ_q and the element-level term of the F-bar / B-bar element Hessian of one cell.
+
+    F-bar (de Souza Neto et al. 1996): ``F̄_q = θ_q F_q``, ``θ_q = (J̄/J_q)^{1/d}``,
+    ``J̄ = Σ_p ω_p J_p`` (``ω = w/Σw``). With ``h_q = (g − g_q)/d`` (``g_q = B_qᵀ vec F_q⁻ᵀ``,
+    ``g = Σ_p B_pᵀ vec(ω_p cof F_p)/J̄``), ``dF̄_q = θ_q (B_q + vec F_q h_qᵀ) δu`` and
+
+        Kₑ = Σ_q w_q [θ²(B + f hᵀ)ᵀ C̄ (B + f hᵀ) + θ α (h hᵀ + H_φ) + θ (h sᵀ + s hᵀ)],
+
+    ``C̄, P̄`` at F̄_q, ``α = P̄ : F``, ``s = Bᵀ vec P̄``, ``H_φ`` the Hessian of
+    ``φ_q = ln θ_q`` (it has ``d²J̄ = Σ ω_p ∂²J_p`` and ``tr(F⁻¹δF F⁻¹δF)`` terms). Every
+    per-point term is ``B_qᵀ (…) B_q`` of a d⁴ tensor and the products of point sums are
+    rank-one in the element dofs, so ``Kₑ = Σ_q B_qᵀ Ĉ_q B_q + g zᵀ + z gᵀ + κ g gᵀ`` with
+
+        y = wθ² C̄:F + wθ P̄,   γ = y : F,   A = Σ_q o wθα,   Γ = Σ_q o γ,
+        Ĉ = wθ² C̄ − (o/d)(y ⊗ F⁻ᵀ + F⁻ᵀ ⊗ y) + (oγ/d²) F⁻ᵀ ⊗ F⁻ᵀ + (o wθα/d) F⁻ᵀ ⊠ F⁻ᵀ
+            + (A ω/(d J̄)) ∂²J,
+        z = Σ_q B_qᵀ vec(o (y/d − γ F⁻ᵀ/d²)),   κ = Γ/d² − A/d,
+
+    ``o_q`` = 1 where ``J_q > 0`` and ``J̄ > 0`` (elsewhere F̄_q = F_q, θ_q = 1, as in
+    :func:`~jaxelastic.kinematics.f_bar`). B-bar (F̄ linear in F: no geometric term) is the
+    same algebra with ``θ = 1``, F⁻ᵀ and cof F replaced by I, ``y = w C̄ : I``, ``A = 0``.
+
+    Long because: the derivation is stated next to the terms it produces, and the B-bar
+    branch shares them.
+
+    Args:
+        psi: ψ(F, params).
+        F: ``(q, d, d)`` compatible deformation gradients; w: ``(q,)`` weights; p: params.
+        form: ``"fbar"`` or ``"bbar"``.
+        pred: :func:`_always` (stores C and y once, see :func:`_materialize`).
+
+    Returns:
+        ``(Ĉ, Gq, Zq, κ)``: Ĉ ``(q, d, d, d, d)``; Gq, Zq ``(q, d, d)`` with
+        ``g = Σ_q B_qᵀ vec Gq`` and ``z = Σ_q B_qᵀ vec Zq`` (:func:`_bt_sum`); κ a scalar.
+    """
+    d = F.shape[-1]
+    H = jax.vmap(jax.hessian(psi, argnums=0), in_axes=(0, None))
+    eye = jnp.eye(d, dtype=F.dtype)
+    omega = w / jnp.sum(w)
+    if form == "bbar":
+        Fb = b_bar(F, w)
+        C = _materialize(H(Fb, p), pred)  # (q, d, d, d, d)
+        I = jnp.broadcast_to(eye, F.shape)
+        y = _materialize(w[:, None, None] * _ddot(C, I), pred)
+        gam = jnp.trace(y, axis1=-2, axis2=-1)
+        Ch = (
+            w[:, None, None, None, None] * C
+            - (_outer(y, I) + _outer(I, y)) / d
+            + (gam / d**2)[:, None, None, None, None] * _outer(I, I)
+        )
+        Gq = omega[:, None, None] * I
+        Zq = y / d - (gam / d**2)[:, None, None] * I
+        return Ch, Gq, Zq, jnp.sum(gam) / d**2
+    J = jax.vmap(det)(F)
+    cof = jax.vmap(cofactor)(F)
+    Jbar = jnp.sum(omega * J)
+    ok = (J > 0) & (Jbar > 0)
+    o = ok.astype(F.dtype)
+    Jbar_s = jnp.where(Jbar > 0, Jbar, 1.0)
+    ratio = jnp.where(ok, Jbar_s / jnp.where(ok, J, 1.0), 1.0)
+    theta = ratio ** (1.0 / d)
+    Fb = theta[:, None, None] * F
+    P = jax.vmap(jax.grad(psi, argnums=0), in_axes=(0, None))(Fb, p)
+    P, C = _materialize((P, H(Fb, p)), pred)
+    Fi = cof / jnp.where(ok, J, 1.0)[:, None, None]  # F⁻ᵀ where ok (else unused)
+    wt = w * theta
+    y = _materialize((wt * theta)[:, None, None] * _ddot(C, F) + wt[:, None, None] * P, pred)
+    gam = jnp.sum(y * F, axis=(-2, -1))
+    alpha = jnp.sum(P * F, axis=(-2, -1))
+    A = jnp.sum(o * wt * alpha)
+    b4 = (slice(None), None, None, None, None)
+    Ch = (
+        (wt * theta)[b4] * C
+        - (o / d)[b4] * (_outer(y, Fi) + _outer(Fi, y))
+        + (o * gam / d**2)[b4] * _outer(Fi, Fi)
+        + (o * wt * alpha / d)[b4] * _outer_swap(Fi, Fi)
+        + (A * omega / (d * Jbar_s))[b4] * jax.vmap(_det_hessian)(F)
+    )
+    Gq = (omega / Jbar_s)[:, None, None] * cof
+    Zq = o[:, None, None] * (y / d - (gam / d**2)[:, None, None] * Fi)
+    kappa = jnp.sum(o * gam) / d**2 - A / d
+    return Ch, Gq, Zq, kappa
+
+
+def _bt_sum(Mq, dN):
+    """``Σ_q B_qᵀ vec M_q`` as ``(k, d)``: ``out[k,a] = Σ_q Σ_b M_q[a,b] ∇N_k,b(q)``."""
+    return _cell_contract(jnp.ones(Mq.shape[0], Mq.dtype), Mq, dN)
+
+
+def _element_hessian_terms(psi, fbar: str | None, pred):
+    """Per cell ``(ue, dN, w, params) ↦ (Ĉ (q, d, d, d, d), g (k, d), z (k, d), κ)``: the
+    element Hessian is ``Σ_q B_qᵀ Ĉ_q B_q + g zᵀ + z gᵀ + κ g gᵀ`` (g = z = 0, κ = 0 for
+    the standard formulation, where ``Ĉ_q = w_q ∂²ψ/∂F²(F_q)``)."""
+    H = jax.vmap(jax.hessian(psi, argnums=0), in_axes=(0, None))
+
+    def terms(ue, dN, w, p):
+        F = _cell_F(ue, dN)
+        if not fbar:
+            return w[:, None, None, None, None] * H(F, p), None, None, None
+        Ch, Gq, Zq, kappa = _fbar_hessian_terms(psi, F, w, p, fbar, pred)
+        return Ch, _bt_sum(Gq, dN), _bt_sum(Zq, dN), kappa
+
+    return terms
 
 
 def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = False):
     """Per-element Hessians ``∂²E_c/∂x_e²``, ``(n_cells, k·d, k·d)`` (node-major dofs).
+
+    Formed by contraction, ``Kₑ = Σ_q w_q B_qᵀ C_q B_q`` with ``C = ∂²ψ/∂F²`` (autodiff of
+    ψ, ``(d², d²)`` per quadrature point) and the shape-function gradients; under the
+    ``"fbar"``/``"bbar"`` formulations the same contraction of a modified per-point tensor
+    plus a rank-3 element term (see :func:`_fbar_hessian_terms`; the derivation is in
+    ``docs/guide/performance.md``). :func:`element_hessians_reference` differentiates the
+    element energy twice instead (the test reference).
 
     Args:
         project: clamp each element Hessian to positive semidefinite (see
@@ -552,7 +789,75 @@ def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = Fa
     Other args as :func:`energy_densities`.
     """
     _check_call("je.element_hessians", psi, x, mesh, params)
-    xe = x[mesh.cells]
-    ke = _element_hessian(psi, _is_fbar(mesh))
-    K = _per_cell(ke, params, mesh.n_cells)(xe, mesh.dN, mesh.weights, params)
+    ue = displacements(x, mesh)[mesh.cells]
+    c, k, d = ue.shape
+    form = _is_fbar(mesh)
+    axes = cell_params_axes(params, c)
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    is_cell = jax.tree_util.tree_leaves(axes, is_leaf=lambda a: a is None)
+    cell_leaves = [leaf for leaf, ax in zip(leaves, is_cell, strict=True) if ax == 0]
+
+    def block(args):
+        ue_b, dN_b, w_b, cells_b, cl = args
+        it = iter(cl)
+        p = jax.tree_util.tree_unflatten(
+            treedef,
+            [next(it) if ax == 0 else leaf for leaf, ax in zip(leaves, is_cell, strict=True)],
+        )
+        n = ue_b.shape[0]
+        pred = _always(cells_b)  # outside the per-cell vmap: the conditionals stay
+        terms = _element_hessian_terms(psi, form, pred)
+        Ch, g, z, kappa = _per_cell(terms, p, n)(ue_b, dN_b, w_b, p)
+        K = _contract_hessians(Ch, dN_b, pred)  # (n, k, d, k, d)
+        if g is not None:
+            g, z, kappa = _materialize((g, z, kappa), pred)
+            gz = g[:, :, :, None, None] * z[:, None, None, :, :]
+            gg = g[:, :, :, None, None] * g[:, None, None, :, :]
+            K = K + gz + jnp.transpose(gz, (0, 3, 4, 1, 2)) + kappa[:, None, None, None, None] * gg
+        return K.reshape(n, k * d, k * d)
+
+    args = (ue, mesh.dN, mesh.weights, mesh.cells, cell_leaves)
+    B = _hessian_block_cells(mesh.dN.shape[1], k, d)
+    nb = c // B
+    if nb <= 1:
+        K = block(args)
+    else:  # lax.map over whole blocks (a scan: each block is one unbatched call), then the tail
+        head = jax.tree_util.tree_map(lambda a: a[: nb * B].reshape((nb, B) + a.shape[1:]), args)
+        K = jax.lax.map(block, head).reshape(nb * B, k * d, k * d)
+        if nb * B < c:
+            tail = jax.tree_util.tree_map(lambda a: a[nb * B :], args)
+            K = jnp.concatenate([K, block(tail)])
     return project_psd(K) if project else K
+
+
+def _hessian_block_cells(q: int, k: int, d: int) -> int:
+    """Cells per block of :func:`element_hessians` (a ``lax.map`` over blocks).
+
+    One quadrature point (P1): no blocks (they measured 1.25× slower on 100k tet4). More
+    points: the two-stage contraction holds q·k·d³ numbers per cell (30 kB for tet10);
+    blocks of about 8 MB of intermediates bound the memory and keep them in cache
+    (measured 1.25–1.3× faster for 10k tet10 than all cells at once, and a 100k-tet10
+    call no longer holds 3 GB of intermediates).
+    """
+    if q == 1:
+        return 1 << 62
+    return max(64, (1 << 20) // (q * k * d**3 + (k * d) ** 2))
+
+
+def element_hessians_reference(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
+    """Element Hessians by ``jax.hessian`` of the element energy over the element's node
+    coordinates, ``(n_cells, k·d, k·d)`` — every formulation, no contraction formula.
+
+    The slow, independent reference for :func:`element_hessians` (the former
+    implementation of the F-bar path; 10–50× slower for P2 and F-bar): use it in tests and
+    to check a new ψ. Args as :func:`energy_densities`.
+    """
+    _check_call("je.element_hessians_reference", psi, x, mesh, params)
+    ue = displacements(x, mesh)[mesh.cells]
+    ee = _element_energy(psi, _is_fbar(mesh))
+
+    def ke(ue, dN, w, p):
+        k, d = ue.shape
+        return jax.hessian(ee)(ue, dN, w, p).reshape(k * d, k * d)
+
+    return _per_cell(ke, params, mesh.n_cells)(ue, mesh.dN, mesh.weights, params)

@@ -7,8 +7,10 @@ the one atomic writer and JSON sanitiser of the package.
   :class:`MeshData`: the validated :class:`~jaxelastic.mesh.Mesh` plus named point, cell and
   boundary-facet sets taken from Gmsh physical groups and meshio point/cell sets.
 * :func:`write_vtu` writes one state (rest geometry + ``displacement``, optionally J,
-  Green strain, first Piola stress, von Mises stress and ψ per cell); :class:`TimeSeriesWriter`
-  writes ``basename_0000.vtu``… and a ParaView ``.pvd`` collection.
+  Green strain, first Piola and Cauchy stress, von Mises stress and ψ per cell, and the
+  recovered nodal Cauchy and von Mises stress per node, :func:`nodal_stress`);
+  :class:`TimeSeriesWriter` writes ``basename_0000.vtu``… and a ParaView ``.pvd``
+  collection.
 * :func:`write_atomic` is the atomic writer every output goes through;
   :func:`to_jsonable` turns numpy/JAX values, NamedTuples, enums and paths into plain JSON
   values (NaN/inf → ``null``) and :func:`write_json` writes them atomically.
@@ -44,6 +46,7 @@ import numpy as np
 from .energy import cell_params_axes, check_positions, check_psi, first_piola, psi_name
 from .kinematics import deformation_gradients, det, green_strain
 from .mesh import Mesh, MeshError, boundary_facets, from_arrays
+from .mesh.elements import ref_nodes
 
 __all__ = [
     "MeshIOError",
@@ -51,6 +54,7 @@ __all__ = [
     "read_mesh",
     "write_vtu",
     "cell_fields",
+    "nodal_stress",
     "TimeSeriesWriter",
     "write_atomic",
     "write_json",
@@ -323,6 +327,56 @@ def _plane_strain_parts(psi, F, J, params, ax):
     return szz, mismatch
 
 
+def _linear_basis(xi) -> np.ndarray:
+    """``(n, d+1)`` values of the linear monomials ``1, ξ₁, …, ξ_d`` at reference points."""
+    xi = np.asarray(xi, dtype=np.float64)
+    return np.concatenate([np.ones((xi.shape[0], 1)), xi], axis=1)
+
+
+def _recovery_incidence(element) -> np.ndarray:
+    """``(n_q, k)`` 0/1: which element nodes each quadrature point's (constant) stress is
+    attributed to in the nodal average: all nodes for P1 (one point), the sub-simplex's
+    nodes for the composite elements (one point per sub-simplex)."""
+    if element.is_composite:
+        B = np.zeros((element.n_quad, element.n_nodes))
+        for s, sub in enumerate(element.sub_cells):
+            B[s, list(sub)] = 1.0
+        return B
+    return np.ones((element.n_quad, element.n_nodes))
+
+
+def _nodal_average(s3, mesh):
+    """Recovered nodal Cauchy stress ``(n_nodes, 9)`` from quadrature values ``(c, q, 3, 3)``.
+
+    P2 (``order == 2``): per element, the weighted least-squares (local L2) fit of a linear
+    field in the reference coordinates to the quadrature values, evaluated at the element's
+    nodes (exact when the stress is linear in the element, as for linear elasticity on a
+    straight-sided P2 element); P1 and the composite elements: the piecewise-constant value
+    of the (sub-)simplex. Each node then takes the average of its elements' values weighted
+    by the element (sub-simplex) measure.
+    """
+    el = mesh.element_type
+    c, q = s3.shape[:2]
+    sq = s3.reshape(c, q, 9)
+    w = mesh.weights  # (c, q) [length^d]
+    if el.order == 2 and not el.is_composite:
+        Pq = jnp.asarray(_linear_basis(el.quad_points), s3.dtype)  # (q, d+1)
+        Pn = jnp.asarray(_linear_basis(ref_nodes(el.dim)), s3.dtype)  # (k, d+1)
+        G = jnp.einsum("qi,cq,qj->cij", Pq, w, Pq)
+        coef = jnp.linalg.solve(G, jnp.einsum("qi,cq,cqx->cix", Pq, w, sq))  # (c, d+1, 9)
+        wts = jnp.broadcast_to(w.sum(axis=1)[:, None], (c, el.n_nodes))
+        num = jnp.einsum("ki,cix->ckx", Pn, coef) * wts[..., None]
+    else:
+        B = jnp.asarray(_recovery_incidence(el), s3.dtype)  # (q, k)
+        num = jnp.einsum("qk,cq,cqx->ckx", B, w, sq)
+        wts = jnp.einsum("qk,cq->ck", B, w)
+    idx = mesh.cells.reshape(-1)
+    n = mesh.points.shape[0]
+    total = jax.ops.segment_sum(num.reshape(-1, 9), idx, num_segments=n)
+    weight = jax.ops.segment_sum(wts.reshape(-1), idx, num_segments=n)
+    return total / jnp.where(weight > 0, weight, jnp.nan)[:, None]
+
+
 @functools.partial(jax.jit, static_argnums=(0, 4))
 def _cell_fields(psi, x, mesh, params, embed: bool):
     F = deformation_gradients(x, mesh)  # (c, q, d, d); F̄ under the F-bar formulation
@@ -342,12 +396,17 @@ def _cell_fields(psi, x, mesh, params, embed: bool):
         "J": avg(J),
         "green_strain": avg(jax.vmap(jax.vmap(green_strain))(F)).reshape(c, d * d),
         "stress_P": avg(P).reshape(c, d * d),
+        "cauchy_stress": avg(s3).reshape(c, 9),
         "von_mises": avg(_von_mises(s3)),
         "energy_density": avg(W),
+        "cauchy_stress_nodal": _nodal_average(s3, mesh),
     }
     if embed:
         szz, mismatch = _plane_strain_parts(psi, F, J, params, ax)
-        out["von_mises_plane_strain"] = avg(_von_mises(s3.at[..., 2, 2].set(szz)))
+        s3z = s3.at[..., 2, 2].set(szz)
+        out["von_mises_plane_strain"] = avg(_von_mises(s3z))
+        out["cauchy_stress_plane_strain"] = avg(s3z).reshape(c, 9)
+        out["cauchy_stress_nodal_plane_strain"] = _nodal_average(s3z, mesh)
         out["stress_zz"] = avg(szz)
         out["mismatch"] = mismatch
     return out
@@ -385,11 +444,48 @@ def cell_fields(psi, x, mesh: Mesh, params, *, plane: str = "strain") -> dict[st
 
     Returns:
         ``J`` ``(n_cells,)``: det F; ``green_strain`` ``(n_cells, d²)``: E = ½(FᵀF − I)
-        row-major; ``stress_P`` ``(n_cells, d²)``: first Piola P [Pa]; ``von_mises``
-        ``(n_cells,)``: of the Cauchy stress σ = P Fᵀ/J [Pa] (with σ_zz as above in 2D);
-        ``energy_density`` ``(n_cells,)``: ψ [Pa]; in 2D ``stress_zz`` ``(n_cells,)``: the
-        σ_zz used [Pa] (0 in plane stress).
+        row-major; ``stress_P`` ``(n_cells, d²)``: first Piola P [Pa]; ``cauchy_stress``
+        ``(n_cells, 9)``: the Cauchy stress σ = P Fᵀ/J as a row-major 3×3 tensor [Pa]
+        (in 2D with σ_zz as above, zero shear out of plane); ``von_mises`` ``(n_cells,)``:
+        of σ [Pa]; ``energy_density`` ``(n_cells,)``: ψ [Pa]; in 2D ``stress_zz``
+        ``(n_cells,)``: the σ_zz used [Pa] (0 in plane stress). Recovered nodal
+        stresses: :func:`nodal_stress`.
     """
+    return _stress_fields(psi, x, mesh, params, plane)[0]
+
+
+def nodal_stress(psi, x, mesh: Mesh, params, *, plane: str = "strain") -> dict[str, np.ndarray]:
+    """Recovered, continuous nodal (point) stresses, e.g. to read a peak stress at a notch.
+
+    The Cauchy stress σ = P Fᵀ/J at the quadrature points is turned into one value per
+    element node and averaged over the elements that share the node, weighted by the
+    element measure:
+
+    * P2 (``tri6``, ``tet10``): per element the local L2 projection (weighted least
+      squares over the quadrature points) of σ onto linear fields, evaluated at the 6 / 10
+      nodes. For linear elasticity on straight-sided P2 elements σ is linear in the
+      element, so this is the element's own nodal stress, exactly.
+    * P1 (``tri3``, ``tet4``): the constant stress of each cell; composite F-bar elements
+      (``tri3x4``, ``tet4x8``): the constant stress of each linear sub-simplex.
+
+    A stress field the elements represent exactly (uniform for P1, linear for P2) is
+    recovered exactly at every node; elsewhere the averaging recovers the peak far better
+    than the largest cell average (the concentration at a hole of a plate, within the
+    discretisation error of the P2 field). σ_zz in 2D is that of :func:`cell_fields`.
+
+    Args:
+        psi, x, mesh, params, plane: as for :func:`cell_fields`.
+
+    Returns:
+        ``cauchy_stress_nodal`` ``(n_nodes, 9)``: row-major 3×3 Cauchy stress [Pa];
+        ``von_mises_nodal`` ``(n_nodes,)``: the von Mises stress of that tensor [Pa].
+    """
+    return _stress_fields(psi, x, mesh, params, plane)[1]
+
+
+def _stress_fields(psi, x, mesh: Mesh, params, plane: str):
+    """``(cell fields, point fields)`` of :func:`cell_fields` and :func:`nodal_stress`
+    from one jitted evaluation (the plane-strain σ_zz decision and its warning here)."""
     if plane not in ("strain", "stress"):
         raise ValueError(f"plane must be 'strain' or 'stress', got {plane!r}")
     check_positions(x, mesh, where="cell_fields")
@@ -399,12 +495,18 @@ def cell_fields(psi, x, mesh: Mesh, params, *, plane: str = "strain") -> dict[st
     embed = strain2d and why is None
     out = _cell_fields(psi, jnp.asarray(x, dtype=mesh.points.dtype), mesh, params, embed)
     out = {k: np.asarray(v) for k, v in out.items()}
+    nodal = out.pop("cauchy_stress_nodal")
     if embed:
         mismatch = float(np.nanmax(out.pop("mismatch")))
         vm, szz = out.pop("von_mises_plane_strain"), out.pop("stress_zz")
+        sig, sig_n = (
+            out.pop("cauchy_stress_plane_strain"),
+            out.pop("cauchy_stress_nodal_plane_strain"),
+        )
         tol = float(np.sqrt(np.finfo(out["J"].dtype).eps))
         if mismatch <= tol:
-            out["von_mises"], out["stress_zz"] = vm, szz
+            out["von_mises"], out["stress_zz"], out["cauchy_stress"] = vm, szz, sig
+            nodal = sig_n
         else:
             why = (
                 f"its in-plane stress on diag(F, 1) differs from that on F by {mismatch:.2g} "
@@ -418,9 +520,13 @@ def cell_fields(psi, x, mesh: Mesh, params, *, plane: str = "strain") -> dict[st
             f"and without stress_zz, since σ_zz cannot be taken from the 3D embedding of ψ "
             f"{psi_name(psi)!r}: {why}",
             UserWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
-    return out
+    points = {
+        "cauchy_stress_nodal": nodal,
+        "von_mises_nodal": np.asarray(_von_mises(jnp.asarray(nodal).reshape(-1, 3, 3))),
+    }
+    return out, points
 
 
 def _pad3(a: np.ndarray) -> np.ndarray:
@@ -590,6 +696,9 @@ def write_vtu(
 ) -> None:
     """Write one state of ``mesh`` as a VTU file (rest geometry + ``displacement``).
 
+    Long because: the checks of every input (protected paths, shapes, NaN positions, name
+    clashes) come before anything is written, each with its own message.
+
     Args:
         path: output ``.vtu`` file.
         x: ``(n_nodes, dim)`` current positions [length]; ``None`` means the rest shape.
@@ -598,7 +707,9 @@ def write_vtu(
         point_data, cell_data: extra arrays, leading axis ``n_nodes`` resp. ``n_cells``;
             ``(n_nodes, 2)`` point vectors are padded to 3 components.
         psi, params: when both are given, add the :func:`cell_fields` (J, green_strain,
-            stress_P, von_mises, energy_density; in 2D stress_zz).
+            stress_P, cauchy_stress, von_mises, energy_density; in 2D stress_zz) as cell
+            data and the recovered :func:`nodal_stress` (cauchy_stress_nodal,
+            von_mises_nodal) as point data.
         plane: 2D only, ``"strain"`` (default) or ``"stress"``: the out-of-plane stress
             assumed by ``von_mises`` (see :func:`cell_fields`).
         protect: paths (or :class:`MeshData`) that must never be overwritten, e.g. the
@@ -636,7 +747,8 @@ def write_vtu(
     pdata: dict[str, Any] = {"displacement": _pad3(x - rest)}
     cdata: dict[str, Any] = {}
     if psi is not None:
-        cdata = cell_fields(psi, x, mesh, params, plane=plane)
+        cdata, nodal = _stress_fields(psi, x, mesh, params, plane)
+        pdata.update(nodal)
     for extra, out, n, what in (
         (point_data, pdata, mesh.n_nodes, "n_nodes"),
         (cell_data, cdata, mesh.n_cells, "n_cells"),

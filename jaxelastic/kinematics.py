@@ -23,6 +23,7 @@ import jax.numpy as jnp
 
 __all__ = [
     "deformation_gradients",
+    "displacements",
     "f_bar",
     "b_bar",
     "det",
@@ -38,7 +39,15 @@ __all__ = [
 
 
 def deformation_gradients(x: jax.Array, mesh, *, fbar: bool | None = None) -> jax.Array:
-    """F at every quadrature point: ``F = Σ_a x_a ⊗ ∇N_a`` (``= Ds·Dm⁻¹`` for P1).
+    """F at every quadrature point: ``F = I + Σ_a (x_a − X_a) ⊗ ∇N_a`` (``= Ds·Dm⁻¹`` for P1).
+
+    Computed from the displacements ``u = x − X`` (X = ``mesh.points``), not from the
+    absolute positions: ``Σ_a ∇N_a = 0``, so both forms are equal in exact arithmetic, but
+    the round-off of ``Σ_a x_a ⊗ ∇N_a`` grows with the coordinates (a mesh far from the
+    origin, or float32) while that of ``I + ∇u`` only grows with the displacement; at the
+    rest state (x = X) F is exactly I. The working dtype is the mesh's: ``u`` is cast to
+    ``mesh.points.dtype`` (a float64 ``x`` on a float32 mesh gives float32 F, exact ``u``
+    first).
 
     Under the ``"fbar"``/``"bbar"`` formulations this is the F the energy uses, F̄ (see
     :func:`f_bar`, :func:`b_bar`).
@@ -50,7 +59,7 @@ def deformation_gradients(x: jax.Array, mesh, *, fbar: bool | None = None) -> ja
             ``"standard"``. ``fbar=False`` gives the compatible F of the displacement field.
 
     Returns:
-        ``(n_cells, n_q, dim, dim)`` deformation gradients (dimensionless).
+        ``(n_cells, n_q, dim, dim)`` deformation gradients (dimensionless), in the mesh's dtype.
 
     Raises:
         ValueError: ``x`` does not have the shape ``(n_nodes, dim)`` of ``mesh.points``
@@ -61,21 +70,33 @@ def deformation_gradients(x: jax.Array, mesh, *, fbar: bool | None = None) -> ja
             f"deformation_gradients: x must have shape (n_nodes, dim) = "
             f"{tuple(mesh.points.shape)} like mesh.points, got {tuple(jnp.shape(x))}"
         )
-    xe = x[mesh.cells]  # (c, k, d)
-    c, k, d = xe.shape
+    ue = displacements(x, mesh)[mesh.cells]  # (c, k, d)
+    c, k, d = ue.shape
     if k == d + 1:
-        F = jnp.einsum("cka,cqkb->cqab", xe, mesh.dN)
+        G = jnp.einsum("cka,cqkb->cqab", ue, mesh.dN)
     else:  # unrolled over nodes: a batched einsum is ~15× slower on CPU for P2 (tet10)
         dN = mesh.dN
-        F = xe[:, None, 0, :, None] * dN[:, :, 0, None, :]
+        G = ue[:, None, 0, :, None] * dN[:, :, 0, None, :]
         for a in range(1, k):
-            F = F + xe[:, None, a, :, None] * dN[:, :, a, None, :]
+            G = G + ue[:, None, a, :, None] * dN[:, :, a, None, :]
+    F = G + jnp.eye(d, dtype=G.dtype)[None, None]
     form = getattr(mesh, "formulation", "standard")
     if fbar is None:
         fbar = form != "standard"
     if not fbar or form == "standard":
         return F
     return jax.vmap(b_bar if form == "bbar" else f_bar)(F, mesh.weights)
+
+
+def displacements(x: jax.Array, mesh) -> jax.Array:
+    """Nodal displacements ``u = x − X`` [length], ``(n_nodes, dim)``, in the mesh's dtype.
+
+    ``X = mesh.points``; the difference is taken in the wider of the two dtypes and then
+    cast to ``mesh.points.dtype`` (the working precision: nothing is promoted beyond it).
+    """
+    X = mesh.points
+    u = x - X
+    return u if u.dtype == X.dtype else u.astype(X.dtype)
 
 
 def b_bar(F: jax.Array, w: jax.Array) -> jax.Array:

@@ -161,6 +161,9 @@ def linear(F, params: Lame):
     return params.mu * jnp.sum(eps * eps) + 0.5 * params.lam * tr * tr
 
 
+linear.is_quadratic = True  # ψ quadratic in F: Newton takes one exact step (solvers.newton)
+
+
 def stvk(F, params: Lame):
     """St. Venant–Kirchhoff ``ψ = μ‖E‖² + λ/2·tr²E``, ``E = ½(FᵀF − I)``.
 

@@ -20,6 +20,8 @@ __all__ = [
     "shapes",
     "shapes_3d",
     "final_shape_figure",
+    "magnification",
+    "nice_125",
     "tip_displacement_figure",
     "energy_figure",
 ]
@@ -169,42 +171,184 @@ def view_axes(rest, deformed=()) -> tuple[int, int]:
 
 
 _SHAPE_STYLES = (
-    dict(color="0.55", lw=0.9, ls=":"),
+    dict(color="0.3", lw=1.1, ls=(0, (5, 3))),
     dict(color="C0", lw=1.6, ls="-"),
-    dict(color="C3", lw=1.4, ls="--"),
-    dict(color="C2", lw=1.4, ls="-."),
+    dict(color="C3", lw=1.4, ls="-."),
+    dict(color="C2", lw=1.4, ls=":"),
 )
+"""Outline styles: rest (dark grey dashed), then blue solid, red dash-dotted, green dotted."""
+
+SMALL_DEFORMATION = 0.05
+"""Deformations whose largest displacement is below this fraction of the rest bounding-box
+diagonal are drawn magnified (:func:`magnification`)."""
+MAGNIFIED_TARGET = 0.10
+"""The fraction of the bounding-box diagonal a magnified largest displacement reaches."""
 
 
-def shapes(ax, mesh, configurations, *, axes=None, wire: bool = True):
+def nice_125(x: float) -> float:
+    """The number of the 1-2-5 series (…, 0.5, 1, 2, 5, 10, 20, …) nearest to ``x > 0`` on a
+    log scale."""
+    if not (x > 0 and np.isfinite(x)):
+        raise ValueError(f"nice_125 needs a finite positive number, got {x!r}")
+    k = np.floor(np.log10(x))
+    cands = np.array([1.0, 2.0, 5.0, 10.0]) * 10.0**k
+    return float(cands[np.argmin(np.abs(np.log(cands / x)))])
+
+
+def magnification(
+    rest, deformed=(), *, small: float = SMALL_DEFORMATION, target: float = MAGNIFIED_TARGET
+) -> float:
+    """The factor to draw displacements with, like ParaView's *Warp By Vector* scale: 1 when
+    the largest displacement of the ``deformed`` ``(n, dim)`` positions is at least
+    ``small`` × the rest bounding-box diagonal (or zero), else the 1-2-5 number
+    (:func:`nice_125`) nearest to ``target × diagonal / max |u|`` (so the drawn largest
+    displacement is about ``target`` of the diagonal, 6–16 %).
+
+    Args:
+        rest: ``(n, dim)`` rest positions; deformed: positions of the same nodes.
+    """
+    rest = np.asarray(rest, dtype=float)
+    diag = float(np.linalg.norm(np.ptp(rest, axis=0)))
+    umax = 0.0
+    for x in deformed:
+        u = np.asarray(x, dtype=float) - rest
+        if np.isfinite(u).all():
+            umax = max(umax, float(np.linalg.norm(u, axis=1).max(initial=0.0)))
+    if diag <= 0 or umax <= 0 or umax >= small * diag:
+        return 1.0
+    return max(1.0, nice_125(target * diag / umax))
+
+
+def _factor_text(factor: float) -> str:
+    return f"{factor:g}" if factor < 1e5 else f"{factor:.0e}"
+
+
+def _magnified(configs: dict, factor: float) -> dict:
+    """Positions ``rest + factor·u`` of every configuration but the first (the rest)."""
+    labels = list(configs)
+    rest = configs[labels[0]]
+    return {
+        k: (v if i == 0 else rest + factor * (v - rest)) for i, (k, v) in enumerate(configs.items())
+    }
+
+
+def _value_norm(values):
+    from matplotlib.colors import Normalize
+
+    v = np.asarray(values, dtype=float)
+    fin = v[np.isfinite(v)]
+    lo, hi = (float(fin.min()), float(fin.max())) if fin.size else (0.0, 1.0)
+    if hi <= lo:
+        hi = lo + max(abs(lo), 1.0) * 1e-9
+    return Normalize(lo, hi)
+
+
+def _front_faces(mesh, x, i: int, j: int):
+    """Boundary triangles of a 3D body facing a viewer looking along the remaining axis
+    (from its negative side for a right-handed ``(i, j)`` view), sorted back to front:
+    ``(tris (m, 3), order)``."""
+    tris = _linear_facets(mesh)
+    P = np.asarray(x)[tris]
+    n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    k = 3 - i - j
+    sign = np.sign(np.cross(np.eye(3)[i], np.eye(3)[j])[k])  # +1: the view looks along -k
+    facing = sign * n[:, k] > 0
+    tris = tris[facing]
+    depth = sign * P[facing][:, :, k].mean(axis=1)
+    return tris[np.argsort(depth)]
+
+
+def _draw_colored_2d(ax, mesh, x, values, norm, cmap, i: int, j: int):
+    """The deformed body filled with nodal ``values`` (Gouraud shading on the linear
+    sub-triangles in 2D; front boundary faces coloured by their mean in a 3D side view)."""
+    from matplotlib.collections import PolyCollection
+
+    from .mesh import linear_cells
+
+    xy = np.asarray(x)[:, [i, j]]
+    v = np.asarray(values, dtype=float)
+    if mesh.dim == 2:
+        return ax.tripcolor(
+            xy[:, 0],
+            xy[:, 1],
+            linear_cells(mesh),
+            v,
+            shading="gouraud",
+            cmap=cmap,
+            norm=norm,
+            zorder=1,
+            rasterized=True,
+        )
+    tris = _front_faces(mesh, x, i, j)
+    pc = PolyCollection(
+        list(xy[tris]),
+        array=v[tris].mean(axis=1),
+        cmap=cmap,
+        norm=norm,
+        edgecolors="face",
+        linewidths=0.2,
+        zorder=1,
+    )
+    ax.add_collection(pc)
+    return pc
+
+
+def shapes(
+    ax,
+    mesh,
+    configurations,
+    *,
+    axes=None,
+    wire: bool = True,
+    values=None,
+    cmap: str = "viridis",
+    legend: bool = True,
+):
     """Draw the outline of ``mesh`` in several configurations (a side view in 3D).
 
     Args:
         ax: a matplotlib ``Axes``.
         mesh: the rest mesh.
         configurations: label → ``(n_nodes, dim)`` positions, drawn in order with the
-            styles rest (grey dotted), then blue solid, red dashed, green dash-dotted.
-            The first configuration is taken as the rest shape for the view.
+            styles rest (dark grey dashed, filled light grey in 2D), then blue solid, red
+            dash-dotted, green dotted. The first configuration is taken as the rest shape
+            for the view.
         axes: projection ``(horizontal, vertical)`` (default :func:`view_axes`).
-        wire: also draw a light wireframe of the second configuration.
+        wire: also draw a light wireframe of the second configuration (without ``values``).
+        values: ``(n_nodes,)`` values to colour the second configuration with (e.g. von
+            Mises stress), or None.
+        cmap: the colour map of ``values``.
+        legend: draw a legend on ``ax`` (``loc="best"``).
 
     Returns:
-        ``ax``.
+        The colour mappable of ``values`` (for a colour bar), or None.
     """
-    from matplotlib.collections import LineCollection
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    from .mesh import linear_cells
 
     configs = {k: np.asarray(v, dtype=float) for k, v in configurations.items()}
     labels = list(configs)
     rest = configs[labels[0]]
     i, j = axes if axes is not None else view_axes(rest, [configs[k] for k in labels[1:]])
     feat = feature_edges(mesh)
-    if wire and len(labels) > 1:
+    if mesh.dim == 2:  # the rest body lightly filled: the deformed one reads against it
+        tri = rest[:, [i, j]][linear_cells(mesh)]
+        ax.add_collection(PolyCollection(list(tri), facecolors="0.9", edgecolors="none", zorder=0))
+    mappable = None
+    if values is not None and len(labels) > 1:
+        v = np.asarray(values, dtype=float)
+        mappable = _draw_colored_2d(ax, mesh, configs[labels[1]], v, _value_norm(v), cmap, i, j)
+    elif wire and len(labels) > 1:
         xw = configs[labels[1]][:, [i, j]]
         ax.add_collection(
             LineCollection(list(xw[wire_edges(mesh)]), colors="C0", linewidths=0.3, alpha=0.35)
         )
     for k, label in enumerate(labels):
         st = dict(_SHAPE_STYLES[min(k, len(_SHAPE_STYLES) - 1)])
+        if k == 1 and mappable is not None:
+            st["color"] = "k"
+            st["lw"] = 1.2
         xy = configs[label][:, [i, j]]
         ax.add_collection(
             LineCollection(
@@ -213,6 +357,7 @@ def shapes(ax, mesh, configurations, *, axes=None, wire: bool = True):
                 linewidths=st["lw"],
                 linestyles=st["ls"],
                 label=label,
+                zorder=3 if k == 0 else 2,
             )
         )
     allxy = np.concatenate([c[:, [i, j]] for c in configs.values()])
@@ -223,25 +368,51 @@ def shapes(ax, mesh, configurations, *, axes=None, wire: bool = True):
     ax.set_aspect("equal")
     ax.set_xlabel(f"{_AXIS_NAMES[i]} [m]")
     ax.set_ylabel(f"{_AXIS_NAMES[j]} [m]")
-    ax.legend(loc="best", fontsize="small")
+    if legend:
+        ax.legend(loc="best", fontsize="small")
     ax.grid(alpha=0.25)
-    return ax
+    return mappable
 
 
-def shapes_3d(ax, mesh, configurations, *, wire: bool = True):
-    """Like :func:`shapes` on a matplotlib 3D ``Axes`` (``projection="3d"``)."""
-    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+def shapes_3d(
+    ax, mesh, configurations, *, wire: bool = True, values=None, cmap="viridis", legend=True
+):
+    """Like :func:`shapes` on a matplotlib 3D ``Axes`` (``projection="3d"``): with
+    ``values`` the second configuration's boundary surface is coloured (face means of the
+    nodal values) and the outlines are drawn on top of it."""
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
     configs = {k: np.asarray(v, dtype=float) for k, v in configurations.items()}
     labels = list(configs)
     feat = feature_edges(mesh)
-    if wire and len(labels) > 1:
+    mappable = None
+    if values is not None and len(labels) > 1:
+        v = np.asarray(values, dtype=float)
+        tris = _linear_facets(mesh)
+        norm = _value_norm(v)
+        mappable = Poly3DCollection(
+            configs[labels[1]][tris],
+            array=v[tris].mean(axis=1),
+            cmap=cmap,
+            norm=norm,
+            edgecolors=(0.0, 0.0, 0.0, 0.3),
+            linewidths=0.1,
+            alpha=1.0,
+            zorder=1,
+        )
+        ax.add_collection3d(mappable)
+        ax.computed_zorder = False  # outlines drawn over the surface, in the given order
+    elif wire and len(labels) > 1:
         xw = configs[labels[1]]
         ax.add_collection3d(
             Line3DCollection(xw[wire_edges(mesh)], colors="C0", linewidths=0.3, alpha=0.3)
         )
     for k, label in enumerate(labels):
         st = dict(_SHAPE_STYLES[min(k, len(_SHAPE_STYLES) - 1)])
+        if k == 1 and mappable is not None:
+            st["color"], st["lw"] = "k", 1.0
+        if k == 0 and mappable is not None:
+            st["lw"] = 1.3
         ax.add_collection3d(
             Line3DCollection(
                 configs[label][feat],
@@ -249,6 +420,7 @@ def shapes_3d(ax, mesh, configurations, *, wire: bool = True):
                 linewidths=st["lw"],
                 linestyles=st["ls"],
                 label=label,
+                zorder=3 if k == 0 else 2,
             )
         )
     allx = np.concatenate(list(configs.values()))
@@ -261,39 +433,122 @@ def shapes_3d(ax, mesh, configurations, *, wire: bool = True):
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_zlabel("z [m]")
-    ax.legend(loc="upper left", fontsize="small")
-    return ax
+    if legend:
+        ax.legend(loc="upper left", fontsize="small")
+    return mappable
 
 
-def final_shape_figure(mesh, configurations, *, title: str | None = None):
+def _colorbar(fig, ax, mappable, label: str) -> None:
+    """A colour bar beside ``ax``; large or small values with a power-of-ten offset."""
+    from matplotlib.ticker import ScalarFormatter
+
+    cb = fig.colorbar(mappable, ax=ax, shrink=0.85, pad=0.02)
+    fmt = cb.formatter
+    if isinstance(fmt, ScalarFormatter):
+        fmt.set_powerlimits((-3, 4))  # 1e5 Pa with an offset "1e5", not 100000
+    cb.set_label(label)
+
+
+def _plane_figsize(aspect: float) -> tuple[float, float]:
+    """Figure size [in] of a plane view whose drawing has height/width ``aspect``: an axes
+    box of at most 5.8 × 6.5 in, plus room for the colour bar and the legend below."""
+    if aspect <= 1.0:
+        w_ax, h_ax = 5.8, float(np.clip(5.8 * aspect, 1.4, 6.5))
+    else:
+        w_ax, h_ax = float(np.clip(6.5 / aspect, 1.6, 5.8)), 6.5
+    return max(w_ax + 2.4, 5.0), h_ax + 1.7
+
+
+def final_shape_figure(
+    mesh,
+    configurations,
+    *,
+    title: str | None = None,
+    values=None,
+    values_label: str | None = None,
+    scale="auto",
+    cmap: str = "viridis",
+):
     """A standalone figure of the rest and deformed configurations (rest first).
 
     2D: the outlines in the plane. 3D: a side view (:func:`shapes`) for an elongated body
     (longest rest extent ≥ 2× the others, e.g. a beam), else a perspective view
-    (:func:`shapes_3d`).
+    (:func:`shapes_3d`). The second configuration is coloured by ``values`` with a colour
+    bar (default: its displacement magnitude |u|). Small deformations are magnified
+    (``scale="auto"``: :func:`magnification`; or a given factor) and the factor is in the
+    title and the legend, like ParaView's warp factor. The legend sits below the axes,
+    where it hides nothing.
+
+    Args:
+        mesh: the rest mesh; configurations: label → ``(n_nodes, dim)`` positions.
+        title: the title (the view and the magnification are appended).
+        values: ``(n_nodes,)`` nodal values for the colours (e.g. the von Mises stress
+            :func:`jaxelastic.io.nodal_stress` recovers), or None for |u| [m].
+        values_label: the colour bar's label (default ``"|u| [m]"`` without ``values``).
+        scale: ``"auto"`` or a displacement factor ≥ 1 (1: true scale).
     """
-    confs = list(configurations.values())
-    rest = np.asarray(confs[0])
+    from matplotlib.figure import Figure
+
+    configs = {k: np.asarray(v, dtype=float) for k, v in configurations.items()}
+    labels = list(configs)
+    rest = configs[labels[0]]
+    if values is None and len(labels) > 1:
+        values = np.linalg.norm(configs[labels[1]] - rest, axis=1)
+        values_label = values_label or "|u| [m]"
+    factor = (
+        magnification(rest, [configs[k] for k in labels[1:]]) if scale == "auto" else float(scale)
+    )
+    if factor != 1.0:
+        configs = _magnified(configs, factor)
+        configs = {
+            (k if i == 0 else f"{k} (u ×{_factor_text(factor)})"): v
+            for i, (k, v) in enumerate(configs.items())
+        }
+    confs = list(configs.values())
     ext_rest = np.ptp(rest, axis=0)
     srt = np.sort(ext_rest)[::-1]
+    mag = f"displacements ×{_factor_text(factor)}" if factor != 1.0 else ""
     if mesh.dim == 3 and srt[0] < 2.0 * srt[1]:
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=(7.0, 6.0), layout="constrained")
+        fig = Figure(figsize=(7.0, 6.4), layout="constrained")
         ax = fig.add_subplot(projection="3d")
-        shapes_3d(ax, mesh, configurations)
-        if title:
-            ax.set_title(title, fontsize="medium")
-        return fig
-    i, j = view_axes(rest, confs[1:])
-    ext = np.ptp(np.concatenate([np.asarray(c) for c in confs]), axis=0)
-    aspect = float(ext[j] / max(ext[i], 1e-12))
-    fig, ax = new_axes(figsize=(7.5, float(np.clip(7.0 * aspect + 1.2, 2.8, 7.0))))
-    shapes(ax, mesh, configurations, axes=(i, j))
-    if title:
-        view = "" if mesh.dim == 2 else f" (side view, {_AXIS_NAMES[i]}-{_AXIS_NAMES[j]} plane)"
-        ax.set_title(title + view, fontsize="medium")
+        m = shapes_3d(ax, mesh, configs, values=values, cmap=cmap, legend=False)
+        view = ""
+    else:
+        i, j = view_axes(rest, confs[1:])
+        ext = np.ptp(np.concatenate(confs), axis=0)
+        fig = Figure(
+            figsize=_plane_figsize(float(ext[j] / max(ext[i], 1e-12))), layout="constrained"
+        )
+        ax = fig.add_subplot()
+        m = shapes(ax, mesh, configs, axes=(i, j), values=values, cmap=cmap, legend=False)
+        view = "" if mesh.dim == 2 else f"side view, {_AXIS_NAMES[i]}-{_AXIS_NAMES[j]} plane"
+    if m is not None:
+        _colorbar(fig, ax, m, values_label or "")
+    _legend_below(fig, [ax], max_cols=3)
+    extra = ", ".join(p for p in (view, mag) if p)
+    if title or extra:
+        text = (title or "") + (f" ({extra})" if extra else "")
+        ax.set_title(text, fontsize="medium")
     return fig
+
+
+def _legend_below(fig, axes, max_cols: int = 4) -> None:
+    """One legend of all the labelled lines of ``axes``, below them (outside: it hides
+    no data; needs a constrained-layout figure)."""
+    handles, labels = [], []
+    for ax in axes:
+        h, lab = ax.get_legend_handles_labels()
+        handles += h
+        labels += lab
+    if handles:
+        fig.legend(
+            handles,
+            labels,
+            loc="outside lower center",
+            ncols=min(len(labels), max_cols),
+            fontsize="small",
+            frameon=False,
+        )
 
 
 def tip_displacement_figure(t, u, *, static=None, title: str | None = None):
@@ -321,7 +576,7 @@ def tip_displacement_figure(t, u, *, static=None, title: str | None = None):
     ax.set_xlabel("time $t$ [s]")
     ax.set_ylabel("displacement [m]")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize="small", ncols=2 if static is not None else 1)
+    _legend_below(fig, [ax])
     if title:
         ax.set_title(title, fontsize="medium")
     return fig
@@ -345,7 +600,7 @@ def energy_figure(t, energies, *, settle_tol=None, title: str | None = None):
     ax.set_xlabel("time $t$ [s]")
     ax.set_ylabel("energy [J]")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize="small", ncols=2)
+    axes = [ax]
     if settle_tol is not None:
         ke = np.asarray(energies["kinetic"], dtype=float)
         el = np.abs(np.asarray(energies["elastic"], dtype=float))
@@ -356,7 +611,8 @@ def energy_figure(t, energies, *, settle_tol=None, title: str | None = None):
         ax2.axhline(settle_tol, color="C3", ls="--", lw=1.0, label="settle tolerance")
         ax2.set_xlabel("time $t$ [s]")
         ax2.grid(alpha=0.3, which="both")
-        ax2.legend(loc="best", fontsize="small")
+        axes.append(ax2)
+    _legend_below(fig, axes)
     if title:
         fig.suptitle(title, fontsize="medium")
     return fig

@@ -5,6 +5,8 @@
 * statics: only the first two terms (no mass term is compiled in);
 * backward Euler: ``w = 1/h²``, ``x̃ = x_n + h v_n``; BDF2: ``w = 1/(2h/3)²`` with its x̃
   (Kim & Eberle 2022, §"Time integration"; REFERENCES "Integrators");
+* optional contact with rigid obstacles ``Π_c`` (IPC barrier + lagged friction,
+  :mod:`jaxelastic.contact`; ``contact=None``: nothing of it is traced);
 * optional mass-proportional Rayleigh damping ``c_M = α/h`` and stiffness-proportional
   ``c_K/2 (x − x_n)ᵀ K(x_n) (x − x_n)``, ``c_K = β/h``.
 
@@ -61,6 +63,8 @@ class Potential:
         x_prev: ``(n_nodes, dim)`` positions at the start of the step (damping), or None.
         mass_damping: scalar c_M, or None.
         stiffness_damping: scalar c_K, or None.
+        contact: a :class:`~jaxelastic.contact.Contact` barrier (+ friction) term against
+            obstacles, or None (nothing of contact is traced).
         psi: the strain-energy density (static).
 
     Raises (at construction, see :func:`check_potential`):
@@ -77,6 +81,7 @@ class Potential:
     x_prev: jax.Array | None = None
     mass_damping: jax.Array | None = None
     stiffness_damping: jax.Array | None = None
+    contact: Any = None
     psi: Psi = dataclasses.field(kw_only=True, metadata=dict(static=True))
 
     def __post_init__(self):
@@ -98,6 +103,7 @@ jax.tree_util.register_dataclass(
         "x_prev",
         "mass_damping",
         "stiffness_damping",
+        "contact",
     ],
     meta_fields=["psi"],
 )
@@ -121,6 +127,7 @@ def _is_array(a) -> bool:
 def _widening_leaves(pot: Potential, mesh_dtype):
     """``(name, dtype)`` of every strongly typed float leaf wider than the mesh's dtype."""
     named = [(k, getattr(pot, k)) for k in _FIELD_SHAPES] + [("params", pot.params)]
+    named.append(("contact", pot.contact))
     for name, tree in named:
         for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
             if not _is_array(leaf) or getattr(leaf, "weak_type", False):
@@ -191,6 +198,8 @@ def value(pot: Potential, x: jax.Array) -> jax.Array:
         dx = x - x_prev
         Kdx = hvp(pot.psi, x_prev, dx, pot.mesh, pot.params)
         v = v + 0.5 * pot.stiffness_damping * jnp.sum(dx * Kdx)
+    if pot.contact is not None:
+        v = v + pot.contact.energy(x)
     return v
 
 
@@ -208,6 +217,8 @@ def gradient(pot: Potential, x: jax.Array) -> jax.Array:
     if pot.stiffness_damping is not None:
         x_prev = _needs(pot.x_prev, "x_prev")
         g = g + pot.stiffness_damping * hvp(pot.psi, x_prev, x - x_prev, pot.mesh, pot.params)
+    if pot.contact is not None:
+        g = g + pot.contact.gradient(x)
     return g
 
 
@@ -222,8 +233,11 @@ def mass_diagonal(pot: Potential) -> jax.Array | None:
     return w
 
 
-def hessian_vp(pot: Potential, x: jax.Array, v: jax.Array) -> jax.Array:
-    """``(∂²Π/∂x²)·v``, ``(n_nodes, dim)``, matrix-free."""
+def hessian_vp(
+    pot: Potential, x: jax.Array, v: jax.Array, exact_contact: bool = False
+) -> jax.Array:
+    """``(∂²Π/∂x²)·v``, ``(n_nodes, dim)``, matrix-free (the contact blocks PSD-projected
+    unless ``exact_contact``, as for the implicit-differentiation solves)."""
     Hv = hvp(pot.psi, x, v, pot.mesh, pot.params)
     w = mass_diagonal(pot)
     if w is not None:
@@ -231,6 +245,8 @@ def hessian_vp(pot: Potential, x: jax.Array, v: jax.Array) -> jax.Array:
     if pot.stiffness_damping is not None:
         x_prev = _needs(pot.x_prev, "x_prev")
         Hv = Hv + pot.stiffness_damping * hvp(pot.psi, x_prev, v, pot.mesh, pot.params)
+    if pot.contact is not None:
+        Hv = Hv + pot.contact.hvp(x, v, exact=exact_contact)
     return Hv
 
 
@@ -267,6 +283,14 @@ def node_hessian_blocks(pot: Potential, Ke: jax.Array) -> jax.Array:
     return B
 
 
-def elastic_element_hessians(pot: Potential, x: jax.Array, project: bool) -> jax.Array:
-    """Element Hessians of the elastic energy at x, ``(n_cells, k·dim, k·dim)``."""
-    return element_hessians(pot.psi, x, pot.mesh, pot.params, project=project)
+def elastic_element_hessians(
+    pot: Potential, x: jax.Array, project: bool, exact_contact: bool = False
+) -> jax.Array:
+    """Element Hessians of the elastic energy at x, ``(n_cells, k·dim, k·dim)``; with a
+    contact term, its per-node blocks are added to one element per contact node
+    (:meth:`~jaxelastic.contact.Contact.add_hessian_blocks`; PSD-projected unless
+    ``exact_contact``)."""
+    Ke = element_hessians(pot.psi, x, pot.mesh, pot.params, project=project)
+    if pot.contact is not None:
+        Ke = pot.contact.add_hessian_blocks(Ke, pot.mesh, x, project=not exact_contact)
+    return Ke

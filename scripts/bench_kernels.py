@@ -47,6 +47,18 @@ Usage::
                                     [--dims 2,3] [--elements p1,p2,p2fbar,composite]
                                     [--out DIR]
 
+Element-Hessian targets (issue 11, ``--hessian-targets``): tet4 / tet10 / tet10 F-bar at
+about 100k cells (``--hessian-cells``), for neo-Hookean and corotated (an SVD-based model
+with custom JVPs), each row in its own subprocess so that its peak RSS is its own:
+``contracted`` (``je.element_hessians``: Kₑ = Σ_q B_qᵀ Ĉ_q B_q), ``previous`` (the former
+implementation: the ``"q,qkb,qabcd,qld->kalc"`` einsum for P1/P2, ``jax.hessian`` of the
+element energy over the element coordinates for F-bar; at ``--previous-cells`` where that
+is slow) and ``C_only`` (``vmap(jax.hessian(ψ))`` over all quadrature points, the share
+of C). Min of 3 warm calls, CPU seconds, peak RSS; JSON to ``--out``
+(``bench_kernels_hessians.json``)::
+
+    python scripts/bench_kernels.py --hessian-targets --out out/bench
+
 ``--sizes small`` is 10k elements only, ``medium`` 10k and 100k, ``all`` adds 1M. A kernel
 whose run time, extrapolated from the previous size, exceeds ``--budget`` seconds per
 measurement is skipped with the reason printed (e.g. PSD projection at 1M).
@@ -453,6 +465,136 @@ def format_tables(rows, rats) -> str:
     return "\n".join(lines)
 
 
+# ------------------------------------------------------------- element-Hessian targets
+
+HESSIAN_TARGETS = (("p1", 3.0), ("p2", 0.3), ("p2fbar", 0.1))  # (element, M el/s target)
+HESSIAN_MODELS = ("neo_hookean", "corotated")
+
+
+def _previous_element_hessians(psi, x, mesh, params):
+    """The former implementation: einsum contraction for the standard formulation, and
+    ``jax.hessian`` of the element energy over the element coordinates for F-bar/B-bar."""
+    from jaxelastic.energy import element_hessians_reference
+
+    if mesh.formulation != "standard":
+        return element_hessians_reference(psi, x, mesh, params)
+    u = x - mesh.points
+    ue = u[mesh.cells]
+    c, k, d = ue.shape
+    F = jnp.einsum("cka,cqkb->cqab", ue, mesh.dN) + jnp.eye(d, dtype=x.dtype)
+    H = jax.vmap(jax.vmap(jax.hessian(psi), in_axes=(0, None)), in_axes=(0, None))
+    C = H(F, params)
+    K = jnp.einsum("cq,cqkb,cqabxe,cqle->ckalx", mesh.weights, mesh.dN, C, mesh.dN)
+    return K.reshape(c, k * d, k * d)
+
+
+def _hessian_C_only(psi, x, mesh, params):
+    """``∂²ψ/∂F²`` at every quadrature point (the autodiff share of Kₑ)."""
+    F = je.deformation_gradients(x, mesh, fbar=False)
+    H = jax.vmap(jax.vmap(jax.hessian(psi), in_axes=(0, None)), in_axes=(0, None))
+    return H(F, params)
+
+
+HESSIAN_KERNELS = {
+    "contracted": lambda psi: lambda x, m, p: je.element_hessians(psi, x, m, p),
+    "previous": lambda psi: lambda x, m, p: _previous_element_hessians(psi, x, m, p),
+    "C_only": lambda psi: lambda x, m, p: _hessian_C_only(psi, x, m, p),
+}
+
+
+def hessian_row(element: str, model: str, kernel: str, target: int, repeats: int = 3) -> dict:
+    """One element-Hessian row, timed in this process: compile, ``repeats`` warm calls."""
+    import resource
+
+    jax.config.update("jax_enable_x64", True)
+    mesh = make_mesh(3, target, element)
+    x, _ = deformed(mesh)
+    params = je.Lame(jnp.asarray(1.0e3 / 2.6), jnp.asarray(1.0e3 * 0.3 / (1.3 * 0.4)))
+    fn = jax.jit(HESSIAN_KERNELS[kernel](materials.BUILTIN[model]))
+    t0 = time.perf_counter()
+    compiled = fn.lower(x, mesh, params).compile()
+    compile_s = time.perf_counter() - t0
+    out = jax.block_until_ready(compiled(x, mesh, params))
+    out_bytes = int(out.nbytes)
+    del out
+    walls, cpus = [], []
+    for _ in range(repeats):
+        t, c = time.perf_counter(), time.process_time()
+        jax.block_until_ready(compiled(x, mesh, params))
+        walls.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
+    return {
+        "element": element,
+        "mesh_element": mesh.element,
+        "formulation": mesh.formulation,
+        "model": model,
+        "kernel": kernel,
+        "n_cells": mesh.n_cells,
+        "compile_s": compile_s,
+        "min_s": min(walls),
+        "times_s": walls,
+        "min_cpu_s": min(cpus),
+        "melem_per_s": mesh.n_cells / min(walls) / 1e6,
+        "out_mib": out_bytes / 2**20,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "load_average": os.getloadavg()[0],
+    }
+
+
+def hessian_targets(cells: int, previous_cells: int, out_dir: str | None, log) -> dict:
+    """All element-Hessian target rows, each in a fresh subprocess (own peak RSS)."""
+    import json
+    import subprocess
+
+    rows = []
+    for element, goal in HESSIAN_TARGETS:
+        for model in HESSIAN_MODELS:
+            for kernel in HESSIAN_KERNELS:
+                n = previous_cells if (kernel == "previous" and element != "p1") else cells
+                cmd = [sys.executable, __file__, "--hessian-row", f"{element},{model},{kernel},{n}"]
+                res = subprocess.run(cmd, capture_output=True, text=True)
+                if res.returncode != 0:
+                    log(f"  {element} {model} {kernel}: FAILED\n{res.stderr[-2000:]}")
+                    rows.append(
+                        {
+                            "element": element,
+                            "model": model,
+                            "kernel": kernel,
+                            "error": res.stderr[-2000:],
+                        }
+                    )
+                    continue
+                r = json.loads(res.stdout.strip().splitlines()[-1])
+                r["target_melem_per_s"] = goal if kernel == "contracted" else None
+                rows.append(r)
+                log(
+                    f"  {r['mesh_element']:>6s} {r['formulation']:<8s} {model:<12s} {kernel:<10s}"
+                    f" {r['n_cells']:>7d} cells  min {r['min_s'] * 1e3:9.1f} ms (cpu "
+                    f"{r['min_cpu_s'] * 1e3:8.1f})  {r['melem_per_s']:7.3f} M el/s"
+                    + (f" (target {goal})" if kernel == "contracted" else "")
+                    + f"  compile {r['compile_s']:5.1f} s  peak RSS {r['peak_rss_mib']:7.0f} MiB"
+                    f"  load {r['load_average']:.1f}"
+                )
+    result = {
+        "meta": {
+            "command": " ".join([os.path.basename(sys.argv[0])] + sys.argv[1:]),
+            "jax": jax.__version__,
+            "cpu_count": os.cpu_count(),
+            "machine": platform.machine(),
+            "dtype": "float64",
+            "repeats": 3,
+            "timing": "min of 3 warm calls after compile + 1 call",
+        },
+        "results": rows,
+    }
+    if out_dir:
+        path = os.path.join(out_dir, "bench_kernels_hessians.json")
+        os.makedirs(out_dir, exist_ok=True)
+        write_json(path, result, indent=1, nonfinite="string")
+        log(f"wrote {path}")
+    return result
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", choices=list(SIZES), default="all")
@@ -481,7 +623,30 @@ def main(argv=None) -> dict:
         default=90.0,
         help="skip a kernel whose estimated timed calls exceed this many seconds",
     )
+    ap.add_argument(
+        "--hessian-targets",
+        action="store_true",
+        help="only the element-Hessian target rows (tet4 / tet10 / tet10 F-bar)",
+    )
+    ap.add_argument("--hessian-cells", type=int, default=100_000)
+    ap.add_argument(
+        "--previous-cells",
+        type=int,
+        default=10_000,
+        help="cells for the slow 'previous' P2/F-bar rows of --hessian-targets",
+    )
+    ap.add_argument("--hessian-row", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.hessian_row:
+        import json
+
+        element, model, kernel, n = args.hessian_row.split(",")
+        print(json.dumps(hessian_row(element, model, kernel, int(n))))
+        return {}
+    if args.hessian_targets:
+        return hessian_targets(
+            args.hessian_cells, args.previous_cells, args.out, lambda s: print(s, flush=True)
+        )
     models = [m.strip() for m in args.models.split(",") if m.strip()]
     for m in models:
         if m not in materials.BUILTIN:

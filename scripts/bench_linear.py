@@ -11,8 +11,12 @@ Two 3D problems linearised at rest, isochoric neo-Hookean
 
 For each size it times the jitted element Hessians (compile and steady state), the
 sparsity analysis (building a :class:`~jaxelastic.solvers.host.HostLinearSolver`), the
-assembly, and for each back end ``factor`` (assembly + factorisation / AMG setup) and the
-solve to ``--rtol``, with the peak resident memory of each stage (psutil, sampled). It also
+host assembly, and for each back end (AMG; the direct back ends PARDISO, CHOLMOD,
+cholespy, SuperLU that import, the last two only up to ``--slow-max-dofs``) ``setup``
+(host assembly + first factorisation with the symbolic analysis / AMG setup),
+``refactor`` (a later Newton step's numeric factorisation from the upper data / AMG
+Galerkin refresh) and the solve to ``--rtol``, with the peak resident memory of each stage
+(psutil, sampled), and ``direct_over_amg`` (best direct setup+solve over AMG's). It also
 times AMG hierarchy reuse over a sequence of five matrices along a twisting path. Prints a
 table and writes ``bench_linear.json`` (atomically) to ``--out``.
 
@@ -27,6 +31,7 @@ threads than free cores, OpenBLAS's spinning threads made every CG vector dot ~1
 in our runs (the machine's load average is recorded in the JSON).
 
     python scripts/bench_linear.py                 # n = 10, 19, 29
+    python scripts/bench_linear.py --sizes 10,14,19,24,29 --problems twist --no-reuse
     python scripts/bench_linear.py --sizes 10,19 --out out/bench_linear
 """
 
@@ -53,6 +58,7 @@ import psutil  # noqa: E402
 import jaxelastic  # noqa: E402
 from jaxelastic.io import write_json  # noqa: E402
 from jaxelastic.kinematics import det  # noqa: E402
+from jaxelastic.solvers.backends import available_direct_backends  # noqa: E402
 from jaxelastic.solvers.host import HostLinearSolver  # noqa: E402
 
 E_YOUNG, NU = 10.0, 0.3
@@ -201,18 +207,24 @@ def run_solver(kind, opts, Ke, K, b, mesh, fixed, rtol, host=None):
         t0 = time.perf_counter()
         inv = 1.0 / K.diagonal()
         t_up, c_up, m_up = time.perf_counter() - t0, 0.0, 0.0
+        t_re = t_up
         (x, it, ok, res), t_so, c_so, m_so = timed(pcg, K, b, lambda r: inv * r, rtol, 20000)
         info = {}
     else:
         if host is None:
             host = HostLinearSolver(mesh.cells, mesh.points, fixed.reshape(-1, 3), kind, **opts)
         status, t_up, c_up, m_up = timed(host.factor, Ke, md, 0)
+        # a Newton step after the first: numeric refactorisation (the symbolic analysis is
+        # kept) / AMG Galerkin refresh; upper data precomputed, as the device provides it
+        up = host.pattern.upper_data(Ke)
+        _, t_re, _, _ = timed(host.factor_upper, up, md, 0)
         (x, it, ok, res), t_so, c_so, m_so = timed(host_solve, host, K, b, rtol)
         info = {
             k: (float(v) if isinstance(v, np.floating) else v) for k, v in host.last_info.items()
         }
         info["factor_status"] = int(status)
     return dict(
+        refactor_s=t_re,
         setup_s=t_up,
         setup_cpu_s=c_up,
         solve_s=t_so,
@@ -283,9 +295,13 @@ def bench_case(kind, n, args):
     solvers = {}
     runs = [("amg", "amg", {})]
     if mesh.n_dofs <= args.direct_max_dofs:
-        runs += [
-            (f"direct-{be}", "direct", dict(backend=be)) for be in args.direct_backends.split(",")
-        ]
+        for be in args.direct_backends.split(","):
+            if be not in available_direct_backends():
+                print(f"  (direct back end {be!r} is not importable here: skipped)")
+                continue
+            if be in ("cholespy", "splu") and mesh.n_dofs > args.slow_max_dofs:
+                continue
+            runs.append((f"direct-{be}", "direct", dict(backend=be)))
     if n <= args.cg_max_n:
         runs.append(("cg-jacobi", "cg-jacobi", {}))
     xs = {}
@@ -294,12 +310,19 @@ def bench_case(kind, n, args):
         res, xs[name] = run_solver(kind_, opts, Ke, K, b, mesh, fixed, args.rtol, host)
         solvers[name] = res
         print(
-            f"  {kind:10s} n={n:3d} {name:16s} setup {res['setup_s']:8.2f}s  solve "
+            f"  {kind:10s} n={n:3d} {name:16s} setup {res['setup_s']:8.2f}s  refactor "
+            f"{res['refactor_s']:7.2f}s  solve "
             f"{res['solve_s']:7.2f}s  it {res['iterations']:5d}  res {res['residual']:.1e}  "
             f"rss {res['peak_rss_mb']:7.0f} MiB",
             flush=True,
         )
     ref = next((xs[k] for k in xs if k.startswith("direct")), None)
+    best_direct = min(
+        (s["setup_s"] + s["solve_s"] for k, s in solvers.items() if k.startswith("direct")),
+        default=None,
+    )
+    amg_total = solvers["amg"]["setup_s"] + solvers["amg"]["solve_s"]
+    rec["direct_over_amg"] = None if best_direct is None else best_direct / amg_total
     if ref is not None:
         for k, x in xs.items():
             solvers[k]["rel_diff_to_direct"] = float(
@@ -320,7 +343,8 @@ def bench_case(kind, n, args):
 def print_table(records):
     hdr = (
         f"{'problem':10s} {'n':>3s} {'cells':>8s} {'dofs':>8s} {'nnz':>10s} {'hess s':>7s} "
-        f"{'patt s':>7s} {'asm s':>6s} | {'solver':16s} {'setup s':>8s} {'solve s':>8s} "
+        f"{'patt s':>7s} {'asm s':>6s} | {'solver':16s} {'setup s':>8s} {'refac s':>8s} "
+        f"{'solve s':>8s} "
         f"{'iters':>6s} {'resid':>8s} {'RSS MiB':>8s}"
     )
     print(hdr)
@@ -333,7 +357,8 @@ def print_table(records):
         )
         for name, s in r["solvers"].items():
             print(
-                f"{left} | {name:16s} {s['setup_s']:8.2f} {s['solve_s']:8.2f} "
+                f"{left} | {name:16s} {s['setup_s']:8.2f} {s['refactor_s']:8.2f} "
+                f"{s['solve_s']:8.2f} "
                 f"{s['iterations']:6d} {s['residual']:8.1e} {s['peak_rss_mb']:8.0f}"
             )
             left = " " * len(left)
@@ -351,7 +376,13 @@ def main(argv=None):
         default=100_000,
         help="skip the direct solvers above this many dofs (their fill grows ~n_dofs^(4/3))",
     )
-    ap.add_argument("--direct-backends", default="cholespy,splu")
+    ap.add_argument("--direct-backends", default="pardiso,cholmod,cholespy,splu")
+    ap.add_argument(
+        "--slow-max-dofs",
+        type=int,
+        default=30_000,
+        help="skip cholespy and SuperLU above this many dofs (71 s / 92 s at 81k dofs)",
+    )
     ap.add_argument("--cg-max-n", type=int, default=10, help="run cg-jacobi for n <= this")
     ap.add_argument("--no-reuse", action="store_true", help="skip the AMG reuse study")
     args = ap.parse_args(argv)

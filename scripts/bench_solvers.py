@@ -8,10 +8,13 @@ with E = 10, ν = 0.3, κ = E/(3(1 − 2ν)); converged to a relative residual o
 (n, linear solver) runs in a fresh subprocess so its peak RSS and cold (compile-including)
 time are its own.
 
-Reported per run: cold wall time (first solve, including tracing and XLA compilation),
-warm wall time (second solve, same compiled code), Newton and linear iterations, peak RSS,
-and a per-phase split of one warm Newton iteration (energy+gradient, element Hessians,
-linear solve).
+Reported per run: the linear solver (``auto`` resolves by size) and direct back end,
+cold wall time (first solve, including tracing and XLA compilation), warm wall time (min
+of 3 further solves, same compiled code), Newton and linear iterations, the host
+factorisation time of the last Newton step (``factor s``: numeric Cholesky for direct,
+hierarchy setup/refresh for AMG), peak RSS (VmHWM after the warm solves, before the phase
+split), and a per-phase split of one warm Newton iteration (energy+gradient, element
+Hessians, linear solve).
 
 ``--element`` (default ``p1``): ``p2`` runs the twist on ``box(n, n, n, order=2)``
 (tet10; n = 9–10 has about the dofs of P1 n = 19), ``p2fbar`` the same with the F-bar
@@ -117,12 +120,21 @@ def worker(n: int, solver: str, element: str = "p1") -> dict:
 
     mesh, pot, bc = _twist_problem(n, element)
     linear = je.solvers.bind_linear(solver, mesh, bc)
+    kind = type(linear).__name__.lower()  # what "auto" chose
     newton = je.Newton(rtol=1e-8, max_steps=50, linear=linear)
     t0 = time.perf_counter()
     je.solve(pot, bc, solver=newton, throw=False)
     t_cold = time.perf_counter() - t0
-    warm = je.solve(pot, bc, solver=newton, throw=False)
-    host = None if solver == "cg" else je.solvers.HostLinearSolver.for_problem(mesh, bc, solver)
+    rss_cold = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # MiB on Linux
+    warm_times = []
+    for _ in range(3):  # min of 3 warm solves
+        t0 = time.perf_counter()
+        warm = je.solve(pot, bc, solver=newton, throw=False)
+        warm_times.append(time.perf_counter() - t0)
+    rss_warm = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    host = getattr(linear, "backend", None)  # the bound HostLinearSolver (direct / amg)
+    info = dict(host.last_info) if host is not None else {}
+    backend = info.get("backend", kind if kind != "direct" else "?")
     phases = _phase_split(pot, warm.x, bc, host)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # MiB on Linux
     return dict(
@@ -132,9 +144,15 @@ def worker(n: int, solver: str, element: str = "p1") -> dict:
         tets=int(mesh.n_cells),
         dofs=int(mesh.n_dofs),
         solver=solver,
+        kind=kind,
+        backend=backend,
+        factor_s=float(info.get("setup_time", float("nan"))),
         status=int(warm.status),
         cold_s=t_cold,
-        warm_s=float(warm.stats["wall_time"]),
+        warm_s=min(warm_times),
+        warm_times_s=warm_times,
+        peak_rss_after_cold_mib=rss_cold,
+        peak_rss_after_warm_mib=rss_warm,
         newton=int(warm.stats["steps"]),
         linear_its=int(warm.stats["linear_iterations"]),
         residual=float(warm.stats["residual"]),
@@ -264,9 +282,9 @@ def main(argv=None) -> int:
 
     rows = []
     hdr = (
-        f"{'n':>3} {'tets':>7} {'dofs':>7} {'solver':>7} {'status':>6} {'cold s':>8} "
-        f"{'warm s':>8} {'newton':>6} {'lin its':>7} {'RSS MiB':>8} "
-        f"{'E+g s':>7} {'Ke s':>7} {'lin s':>7}"
+        f"{'n':>3} {'tets':>7} {'dofs':>7} {'solver':>7} {'back end':>9} {'status':>6} "
+        f"{'cold s':>8} {'warm s':>8} {'newton':>6} {'lin its':>7} {'RSS MiB':>8} "
+        f"{'E+g s':>7} {'Ke s':>7} {'factor s':>8} {'lin s':>7}"
     )
     print(f"twist benchmark, element {a.element} (2-core CPU, float64; cold includes compilation)")
     print(hdr)
@@ -282,10 +300,12 @@ def main(argv=None) -> int:
                 continue
             ph = r["phases"]
             print(
-                f"{r['n']:>3} {r['tets']:>7} {r['dofs']:>7} {solver:>7} {r['status']:>6} "
-                f"{r['cold_s']:>8.2f} {r['warm_s']:>8.2f} {r['newton']:>6} {r['linear_its']:>7} "
-                f"{r['peak_rss_mib']:>8.0f} {ph['energy_grad']:>7.3f} "
-                f"{ph['element_hessians']:>7.3f} {ph['linear_solve']:>7.3f}"
+                f"{r['n']:>3} {r['tets']:>7} {r['dofs']:>7} {solver:>7} {r['backend']:>9} "
+                f"{r['status']:>6} {r['cold_s']:>8.2f} {r['warm_s']:>8.2f} {r['newton']:>6} "
+                f"{r['linear_its']:>7} {r['peak_rss_after_warm_mib']:>8.0f} "
+                f"{ph['energy_grad']:>7.3f} {ph['element_hessians']:>7.3f} "
+                f"{r['factor_s']:>8.3f} {ph['linear_solve']:>7.3f}",
+                flush=True,
             )
     result = dict(twist=rows)
     if not a.skip_extras:

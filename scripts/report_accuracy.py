@@ -780,7 +780,19 @@ def _pareto_axes(ax, rows, title, ylabel, machine):
         e = np.array([max(r["error"], 1e-16) for r in good])
         f = rc.pareto(t, e)
         if f.size:
-            ax.step(t[f], e[f], where="post", color="k", lw=1.5, alpha=0.6, label="Pareto front")
+            # a wide grey band under the series: the front runs along their points, and a
+            # thin line on top of them would hide (or be hidden by) the series' lines
+            ax.step(
+                t[f],
+                e[f],
+                where="post",
+                color="0.55",
+                lw=7,
+                alpha=0.4,
+                zorder=0,
+                solid_capstyle="round",
+                label="Pareto front",
+            )
     from matplotlib.ticker import NullFormatter
 
     ax.xaxis.set_minor_formatter(NullFormatter())

@@ -2,10 +2,13 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 import types
 
+import jax
+import numpy as np
 import pytest
 from _common import TINY_SCENE, scene_toml
 
@@ -26,9 +29,14 @@ def _scene_file(tmp_path, data=TINY, name="tiny.toml"):
 def test_run_writes_outputs_and_returns_0(tmp_path, capsys):
     scene = _scene_file(tmp_path)
     out = tmp_path / "out"
-    rc = cli.main(["run", str(scene), "--out", str(out), "--no-cache", "--no-progress"])
+    rc = cli.main(["run", str(scene), "--out", str(out), "--no-cache", "--no-progress", "--json"])
     assert rc == 0
-    assert json.loads(capsys.readouterr().out)["status"] == "ok"
+    stdout = capsys.readouterr().out
+    assert stdout.count("\n") == 1  # --json: one JSON line and nothing else
+    line = json.loads(stdout)
+    assert line["status"] == "ok" and line["out"] == str(out)
+    assert line["summary"] == str(out / "summary.json")
+    assert 0.0 <= line["compile_time"] <= line["wall_time"]
     with open(out / "summary.json") as f:
         s = json.load(f)
     assert s["scene_file"] == str(scene) and s["status"] == "ok"
@@ -46,6 +54,7 @@ def test_run_with_overrides_and_highlights(tmp_path, capsys):
             "-o",
             str(out),
             "--no-cache",
+            "--no-progress",
             "--set",
             "output.png=false",
             "--set",
@@ -54,8 +63,105 @@ def test_run_with_overrides_and_highlights(tmp_path, capsys):
     )
     assert rc == 0
     text = capsys.readouterr().out
-    assert "scene 'renamed': ok" in text and "probe 0" in text
+    lines = text.splitlines()
+    assert lines[0] == "renamed: ok (static)"
+    rows = {ln[2:14].strip(): ln[14:] for ln in lines[1:] if ln[2:14].strip()}
+    assert set(rows) >= {"mesh", "material", "solver", "iterations", "max |u|", "reaction"}
+    assert set(rows) >= {"energy", "probe 0", "time", "outputs"}
+    assert rows["mesh"] == "16 tri3 cells, 15 nodes, 30 dofs (6 fixed)"
+    assert rows["material"].startswith("neo_hookean: E = 1000, nu = 0.3")
+    assert rows["solver"].startswith("Newton (element Hessian) + ")
+    s = json.loads((out / "summary.json").read_text())
+    st = s["static"]
+    # the largest displacement: its node, rest position and value as in summary.json
+    X = st["max_displacement_at"]
+    assert rows["max |u|"].startswith(
+        f"{st['max_displacement']:.4g} m at node {st['max_displacement_node']}, "
+        f"X = ({X[0]:.4g}, {X[1]:.4g})"
+    )
+    assert X[0] == 2.0  # the loaded free end
+    # reaction vs applied load, only the loaded direction (y)
+    assert rows["reaction"].startswith("y: 10 N vs applied load -10 N")
+    assert "x:" not in text.split("reaction", 1)[1].split("energy")[0]
+    assert rows["energy"] == f"elastic {st['elastic_energy']:.4g} J"
+    assert " s = compile " in rows["time"] and " + run " in rows["time"]
+    assert rows["outputs"] == str(out) + os.sep
+    assert "summary.json, static.pvd" in text
     assert not (out / "final_shape.png").exists()
+
+
+def _summary(**over):
+    """A hand-made static summary (the keys run_table reads)."""
+    s = dict(
+        scene=dict(name="demo", material=dict(model="linear", E=2e11, nu=0.3)),
+        status="ok",
+        mesh=dict(dim=3, n_nodes=100, n_cells=300, element="tet10", n_dirichlet_dofs=12),
+        material=dict(model="linear", mu=1.0, lam=1.0, density=None),
+        solver=dict(linear="auto", hessian="element"),
+        linear_solver="direct (cholespy)",
+        precision="float64",
+        static=dict(
+            load_steps=[{}, {}],
+            newton_steps=3,
+            linear_iterations=3,
+            final_residual=1e-12,
+            elastic_energy=0.25,
+            max_displacement=8.7e-5,
+            max_displacement_node=7,
+            max_displacement_at=[0.1, 0.0, 0.02],
+            max_displacement_vector=[0.0, 0.0, -8.7e-5],
+            max_displacement_relative=7e-4,
+            reaction_force=[1e-13, -3.0, 500.0],
+            total_applied_load=[0.0, 0.0, -500.0],
+        ),
+        timings=dict(total=3.0),
+        outputs=dict(directory="/o", summary="/o/summary.json", png=["/o/final_shape.png"]),
+    )
+    s.update(over)
+    return s
+
+
+def test_run_table_contents():
+    from jaxelastic.scene.outputs import run_table
+
+    text = run_table(_summary(), compile_s=1.25, wall_s=3.0)
+    assert text.splitlines()[0] == "demo: ok (static)"
+    assert "300 tet10 cells, 100 nodes, 300 dofs (12 fixed)" in text
+    assert "linear: E = 2e+11, nu = 0.3" in text
+    assert (
+        'Newton (element Hessian) + direct (cholespy) (chosen by linear = "auto"), float64' in text
+    )
+    assert "2 load steps, 3 Newton, 3 linear; final residual 1e-12" in text
+    assert "8.7e-05 m at node 7, X = (0.1, 0, 0.02) (0.07 % of the body diagonal)" in text
+    # per direction: y has a reaction and no load, z both, x neither (round-off)
+    assert "y: -3 N (no applied load)" in text
+    assert "z: 500 N vs applied load -500 N (sum 0)" in text
+    assert "x:" not in text
+    assert "3 s = compile 1.25 s + run 1.75 s" in text
+    assert "summary.json, final_shape.png" in text
+    # columns are aligned: every row's text starts in the same column
+    starts = set()
+    for ln in text.splitlines()[1:]:  # a row, or the continuation of the row above
+        m = re.match(r"^  \S+(?: \S+)* {2,}", ln)
+        starts.add(m.end() if m else len(ln) - len(ln.lstrip()))
+    assert len(starts) == 1, text
+    # without a compile time, only the total
+    assert "3 s in total" in run_table(_summary())
+
+
+def test_compile_clock_counts_overlapping_spans_once():
+    from jaxelastic.scene.outputs import COMPILE_EVENTS, CompileClock
+
+    clock = CompileClock()
+    with clock:
+        for a, b in ((0.0, 2.0), (1.0, 3.0), (5.0, 6.0), (5.2, 5.4)):
+            jax.monitoring.record_event_time_span(COMPILE_EVENTS[0], a, b)
+        jax.monitoring.record_event_time_span("/some/other/event", 10.0, 20.0)
+    jax.monitoring.record_event_time_span(COMPILE_EVENTS[0], 30.0, 40.0)  # after the block
+    assert clock.seconds == pytest.approx(4.0)
+    with CompileClock() as real:  # a real compilation is seen
+        jax.jit(lambda v: v * 3.0 + 1.0)(np.arange(7.0)).block_until_ready()
+    assert real.seconds > 0
 
 
 def test_out_pointing_at_a_file_is_refused(tmp_path, capsys):

@@ -58,7 +58,7 @@ def _write(tmp_path, text, name="scene.toml"):
 def test_fit_command_recovers_E_nu_and_reruns_from_files(tmp_path, capsys):
     scene = _write(tmp_path, TINY_FIT % SYNTH)
     out = tmp_path / "out"
-    rc = cli.main(["fit", str(scene), "--out", str(out), "--no-cache", "--no-progress"])
+    rc = cli.main(["fit", str(scene), "--out", str(out), "--no-cache", "--no-progress", "--json"])
     assert rc == 0
     line = json.loads(capsys.readouterr().out)
     assert line["status"] == "ok"
@@ -126,6 +126,11 @@ def test_fit_command_two_regions(tmp_path, capsys):
     scene = _write(tmp_path, (TINY_FIT % lines).replace("markers = 0.3", "markers = 1.0"))
     out = tmp_path / "out"
     assert cli.main(["fit", str(scene), "--out", str(out), "--no-progress"]) == 0
+    text = capsys.readouterr().out  # the table for people: one value per region
+    assert text.startswith("tinyfit: fit ok (")
+    assert "\n  E           100, 250  (true 100, 250; rel. error " in text
+    assert "\n  nu          0.3, 0.4  (true 0.3, 0.4; rel. error " in text
+    assert "fit.png, observed.npz" in text
     s = json.loads((out / "summary.json").read_text())
     assert s["regions"]["cells"] == [12, 12]
     r = s["result"]

@@ -46,7 +46,7 @@ def test_shipped_scenes_parse_and_build():
         has_loads = bool(s["traction"] or s["point_load"] or "gravity" in s.data)
         assert (pot.f_ext is None) == (not has_loads)  # no load term without loads
         assert b.mesh.dim == (3 if s["mesh"].get("generator") in ("box",) else 2)
-        assert np.asarray(b.bc.mask).any()
+        assert np.asarray(b.bc.mask).any() or pot.contact is not None  # drop: held by contact
     # a shipped scene is also found by name
     assert load_scene("twist").source == shipped["twist"]
 
@@ -323,8 +323,15 @@ def test_static_scene_end_to_end(tmp_path):
     vtu = meshio.read(out / "static_0000.vtu")
     assert {"displacement"} <= set(vtu.point_data)
     assert {"J", "stress_P", "energy_density", "von_mises"} <= set(vtu.cell_data)
+    assert {"cauchy_stress_nodal", "von_mises_nodal"} <= set(vtu.point_data)  # recovered
     u = vtu.point_data["displacement"][:, :2]
     np.testing.assert_allclose(u[probe["node"]], probe["displacement"], atol=1e-12)
+    # the largest displacement: where, and its size against the body
+    norms = np.linalg.norm(u, axis=1)
+    assert st["max_displacement_node"] == int(np.argmax(norms))
+    assert st["max_displacement"] == pytest.approx(norms.max(), rel=1e-12)
+    assert st["max_displacement_at"] == vtu.points[st["max_displacement_node"], :2].tolist()
+    assert st["max_displacement_relative"] == pytest.approx(norms.max() / np.hypot(2.0, 1.0))
     assert (out / "static.pvd").exists() and (out / "final_shape.png").exists()
     assert set(on_disk["timings"]) >= {"build", "solve_incl_compile", "outputs", "total"}
 
@@ -433,8 +440,13 @@ def test_default_scene_small_variant_end_to_end(tmp_path):
     last = meshio.read(out / files[-1])
     assert {"displacement", "velocity"} <= set(last.point_data)
     assert {"J", "stress_P", "energy_density"} <= set(last.cell_data)
+    assert {"cauchy_stress_nodal", "von_mises_nodal"} <= set(last.point_data)
     with open(out / "summary.json") as f:
-        assert json.load(f)["comparison"]["max_nodal_distance"] == c["max_nodal_distance"]
+        on_disk = json.load(f)
+    assert on_disk["comparison"]["max_nodal_distance"] == c["max_nodal_distance"]
+    d = on_disk["dynamic"]  # the largest displacement of the final state
+    u_last = np.linalg.norm(last.point_data["displacement"], axis=1)
+    assert d["max_displacement_node"] == int(np.argmax(u_last))
 
 
 def test_stale_series_files_are_removed(tmp_path):
@@ -585,3 +597,61 @@ def test_solver_defaults_are_newtons():
     cg = newton_of(SolverSpec(linear="cg"))
     assert cg.linear == je.CG(preconditioner=spec.preconditioner, max_iter=spec.cg_max_iter)
     assert je.CG() == cg.linear  # the CG defaults, too
+
+
+# ---- pictures: automatic magnification ---------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "umax, factor",
+    [
+        (0.3, 1.0),  # 13 % of the diagonal: true scale
+        (0.12, 1.0),  # 5.4 %: still true scale
+        (0.1, 2.0),  # 4.5 % -> 2 (9 %)
+        (8.7e-5, 2000.0),  # 0.0039 %: 0.1 * 2.236 / 8.7e-5 = 2570 -> 2000 (nearest on a log scale)
+        (3e-5, 10000.0),  # 7450 -> 10000 (13 %)
+        (0.0, 1.0),  # at rest
+    ],
+)
+def test_magnification_reaches_about_ten_percent_in_1_2_5_steps(umax, factor):
+    from jaxelastic.plot import magnification
+
+    X = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 1.0], [0.0, 1.0]])  # diagonal sqrt(5)
+    x = X.copy()
+    x[2, 1] -= umax
+    assert magnification(X, [x]) == factor
+    if factor > 1:  # the magnified largest displacement: 6-16 % of the diagonal
+        assert 0.06 <= factor * umax / np.sqrt(5.0) <= 0.16
+
+
+def test_nice_125_and_the_factor_in_the_title():
+    from jaxelastic.plot import final_shape_figure, nice_125
+
+    assert [nice_125(v) for v in (1.0, 1.4, 1.5, 3.1, 3.3, 7.0, 7.2, 37.0, 0.03)] == [
+        1.0,
+        1.0,
+        2.0,
+        2.0,
+        5.0,
+        5.0,
+        10.0,
+        50.0,
+        0.02,
+    ]
+    with pytest.raises(ValueError):
+        nice_125(0.0)
+    mesh = je.rectangle(4, 2, size=(2.0, 1.0))
+    X = np.asarray(mesh.points)
+    x = X.copy()
+    x[:, 1] -= 1e-6 * X[:, 0] ** 2  # 4e-6 m at the tip: 1.8e-4 % of the diagonal
+    fig = final_shape_figure(mesh, {"rest": X, "static": x}, title="t")
+    ax = fig.axes[0]
+    assert ax.get_title() == "t (displacements ×50000)"
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels == ["rest", "static (u ×50000)"]  # in the legend below the axes, too
+    assert fig.axes[1].get_ylabel() == "|u| [m]"  # the colour bar
+    # the drawn (magnified) outline reaches ~10 % of the diagonal; scale=1 draws true scale
+    ylo = ax.get_ylim()[0]
+    assert -0.32 < ylo < -0.24  # -0.2 at the tip, minus the 4 % margin
+    fig1 = final_shape_figure(mesh, {"rest": X, "static": x}, title="t", scale=1)
+    assert fig1.axes[0].get_title() == "t" and fig1.axes[0].get_ylim()[0] > -0.1

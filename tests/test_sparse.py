@@ -19,7 +19,13 @@ import scipy.sparse as sp
 
 import jaxelastic
 from jaxelastic.materials import Lame, neo_hookean
-from jaxelastic.solvers.backends import BACKEND_KINDS, AMGSolver, DirectSolver, make_backend
+from jaxelastic.solvers.backends import (
+    BACKEND_KINDS,
+    AMGSolver,
+    DirectSolver,
+    available_direct_backends,
+    make_backend,
+)
 from jaxelastic.solvers.host import (
     NONFINITE,
     NOT_POSITIVE_DEFINITE,
@@ -109,8 +115,10 @@ def test_assembled_equals_dense_hvp_hessian(dim):
     K = P.assemble_full(Ke)
     assert isinstance(K, sp.csr_matrix) and K.has_sorted_indices
     np.testing.assert_allclose(K.toarray(), H, rtol=1e-10, atol=1e-10 * np.abs(H).max())
-    # unsymmetrised assembly is the plain sum too, and the pattern covers every coupling
-    np.testing.assert_allclose(P.assemble_full(Ke, symmetrize=False).toarray(), H, atol=1e-9)
+    # the upper-triangle data is the upper triangle, and the pattern covers every coupling
+    U = P.upper_matrix(P.upper_data(Ke))
+    assert U.has_sorted_indices and U.nnz == P.nnz_upper
+    np.testing.assert_allclose(U.toarray(), np.triu(H), rtol=1e-10, atol=1e-10 * np.abs(H).max())
     in_pattern = P.matrix(np.ones(P.nnz)).toarray() != 0
     assert np.all(in_pattern[np.abs(H) > 0])
     assert K.nnz == P.nnz
@@ -120,17 +128,25 @@ def test_pattern_structure_and_bsr():
     mesh = _mesh(3)
     n, d = mesh.points.shape
     P, Ke = _pattern_and_ke(mesh, _deformed(mesh, 1))
-    assert P.indptr.dtype == np.int32 and P.indices.dtype == np.int32
-    assert P.scatter.size == Ke.size and P.scatter.max() < P.nnz
+    # every index map is int32 (the element map has one entry per upper element entry)
+    for name in ("indptr", "indices", "upper_indptr", "upper_indices", "element_map"):
+        assert getattr(P, name).dtype == np.int32, name
+    for name in ("full_from_upper", "zeroed", "fixed_diag", "diag_slots", "bsr_perm"):
+        assert getattr(P, name).dtype == np.int32, name
+    m = Ke.shape[-1]
+    assert P.element_map.size == Ke.shape[0] * m * (m + 1) // 2
+    assert P.element_map.max() < P.nnz_upper and P.full_from_upper.max() < P.nnz_upper
+    assert 2 * P.nnz_upper - n * d == P.nnz
     K = P.assemble(Ke)
     np.testing.assert_array_equal(P.to_bsr(K).toarray(), K.toarray())
     assert P.has_pattern(K) and not P.has_pattern(K[:-1, :-1])
-    # data[transpose] is the transpose
-    np.testing.assert_array_equal(P.matrix(K.data[P.transpose]).toarray(), K.toarray().T)
-    with pytest.raises(ValueError, match="entries"):
+    np.testing.assert_array_equal(K.toarray(), K.toarray().T)
+    with pytest.raises(ValueError, match="shape"):
         P.assemble(Ke[:-1])
-    # diagonal slots, and adding a diagonal keeps the pattern
-    np.testing.assert_array_equal(K.data[P.diag_slots], K.diagonal())
+    # diagonal slots (upper numbering), and adding a diagonal keeps the pattern
+    up = P.upper_data(Ke)
+    np.testing.assert_allclose(up[P.diag_slots], P.assemble_full(Ke).diagonal())
+    m = np.arange(1.0, n * d + 1)
     m = np.arange(1.0, n * d + 1)
     Km = P.assemble_full(Ke, diag=m)
     np.testing.assert_allclose(Km.toarray(), P.assemble_full(Ke).toarray() + np.diag(m))
@@ -249,7 +265,7 @@ def _problem(name):
 # ----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("backend", ["auto", "splu"])
+@pytest.mark.parametrize("backend", ["auto", *available_direct_backends()])
 @pytest.mark.parametrize("name", ["twist", "cantilever"])
 def test_direct_apply_solves(name, backend):
     mesh, fixed, Ke, md, rhs = _problem(name)
@@ -288,7 +304,7 @@ def test_direct_mass_diagonal_and_float32_hessians():
     assert np.linalg.norm(K @ x - rhs.reshape(-1)) <= 1e-12 * np.linalg.norm(rhs)
 
 
-@pytest.mark.parametrize("backend", ["auto", "splu"])
+@pytest.mark.parametrize("backend", available_direct_backends())
 def test_factor_reports_not_positive_definite(backend, capfd):
     mesh, fixed, Ke, _, rhs = _problem("cantilever")
     host = _host(mesh, fixed, "direct", backend=backend)
@@ -332,7 +348,7 @@ def test_direct_solver_backend():
     K = _host(mesh, fixed).assemble(Ke, md)
     B = np.random.default_rng(8).standard_normal((K.shape[0], 3))
     ref = np.linalg.solve(K.toarray(), B)
-    for backend in ("auto", "cholespy", "splu"):
+    for backend in ("auto", *available_direct_backends()):
         s = DirectSolver(backend=backend)
         with pytest.raises(RuntimeError, match="update"):
             s.solve(B)
@@ -494,7 +510,9 @@ def test_calls_are_serialised():
 
         return wrapper
 
+    inner_upper = host.backend.update_upper
     host.backend.update = guarded(inner_update)
+    host.backend.update_upper = guarded(inner_upper)
     host.backend.solve = guarded(inner_solve)
     host.factor(Ke, md, TOKEN)
     errors = []

@@ -12,7 +12,6 @@ Analysis*, §6.4.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import brentq
 
 from .. import loads
 from ..materials import Lame, lame, neo_hookean
@@ -35,6 +34,8 @@ def uniaxial_tension(k: int, a: float = 1.5, **mesh_kw) -> Benchmark:
     mu, lam = lame(1000.0, 0.3)
     sym = [loads.fix(m, loads.nodes_on_plane(m, ax, 0.0), components=(ax,)) for ax in range(3)]
     pull = pull_bc(m, a)
+    from scipy.optimize import brentq  # here: scipy.optimize costs ~1 s of import time
+
     b = brentq(lambda b: mu * (b * b - 1) + lam * np.log(a * b * b), 0.2, 1.0)
     assert not isinstance(b, tuple)  # no full_output: the root alone
     return Benchmark(

@@ -301,9 +301,12 @@ def _with_progress(run, max_iter: int, progress: bool):
     """``run(max_iter, bar)`` with a tqdm bar (or None), closed whatever happens."""
     bar = None
     if progress:
-        from tqdm.auto import tqdm
+        try:
+            from tqdm.auto import tqdm
 
-        bar = tqdm(total=max_iter, desc="fit", unit="it")
+            bar = tqdm(total=max_iter, desc="fit", unit="it")
+        except ImportError:  # a lean install without tqdm: no bar
+            bar = None
     try:
         return run(max_iter, bar)
     finally:

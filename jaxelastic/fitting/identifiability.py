@@ -63,9 +63,12 @@ def loss_landscape(
     warms = init
     bar = None
     if progress:
-        from tqdm.auto import tqdm
+        try:
+            from tqdm.auto import tqdm
 
-        bar = tqdm(total=out.size, desc="landscape", unit="solve")
+            bar = tqdm(total=out.size, desc="landscape", unit="solve")
+        except ImportError:  # a lean install without tqdm: no bar
+            bar = None
     for i, a in enumerate(a_values):
         js = range(b_values.size) if i % 2 == 0 else range(b_values.size - 1, -1, -1)
         for j in js:

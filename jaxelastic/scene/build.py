@@ -46,6 +46,7 @@ from ..potential import Potential
 from ..solvers import CG, Newton, bind_solver
 from . import memory
 from .callables import CallableSpecError, import_callable, n_positional
+from .contact import build_contact
 from .load import Scene, load_scene
 from .schema import (
     DynamicIntegrator,
@@ -66,6 +67,8 @@ __all__ = [
     "empty_mesh_counts",
     "select_nodes",
     "select_facets",
+    "scene_dtype",
+    "linear_solver_name",
 ]
 
 
@@ -161,6 +164,37 @@ def empty_mesh_counts(path: str) -> tuple[int, int] | None:
     except (ET.ParseError, OSError, ValueError):
         return None
     return (points, cells) if cells == 0 else None
+
+
+def scene_dtype(scene: Scene) -> np.dtype:
+    """The float dtype of a scene's arrays, from ``[solver] precision``: float32 or float64
+    (float32 when x64 is disabled, whatever is asked: JAX has no float64 then)."""
+    want = np.float32 if scene.spec.solver.precision == "float32" else np.float64
+    return np.dtype(jax.dtypes.canonicalize_dtype(want))
+
+
+def _with_dtype(mesh: Mesh, dtype) -> Mesh:
+    """``mesh`` with its float arrays (points, shape-function gradients, weights) in
+    ``dtype`` (computed in the generator's precision, then rounded once)."""
+    if mesh.points.dtype == dtype:
+        return mesh
+    return dataclasses.replace(
+        mesh,
+        points=mesh.points.astype(dtype),
+        dN=mesh.dN.astype(dtype),
+        weights=mesh.weights.astype(dtype),
+    )
+
+
+def _cast(tree, dtype):
+    """Every float array leaf of ``tree`` in ``dtype`` (other leaves unchanged)."""
+
+    def leaf(a):
+        if hasattr(a, "dtype") and jnp.issubdtype(a.dtype, jnp.floating):
+            return jnp.asarray(a, dtype)
+        return a
+
+    return jax.tree_util.tree_map(leaf, tree)
 
 
 def _make_mesh(scene: Scene) -> tuple[Mesh, MeshData | None]:
@@ -419,7 +453,7 @@ def _material(scene: Scene, mesh: Mesh, md: MeshData | None = None) -> tuple[Cal
 def _check_at_identity(scene: Scene, psi, params, dim: int) -> None:
     """Raise the scene's error unless ψ and P are finite at F = I."""
     model = scene.spec.material.model
-    dtype = jnp.zeros(()).dtype
+    dtype = jnp.zeros(()).dtype  # the parameters' dtype (cast to [solver] precision later)
     try:
         F = jnp.asarray(np.eye(dim), dtype)
         val, P = _psi_and_P(psi, F, params)  # one small compile, not op-by-op dispatch
@@ -614,6 +648,29 @@ def newton_of(s: SolverSpec) -> Newton:
     )
 
 
+def linear_solver_name(linear) -> str:
+    """What a bound linear solver is, for the summary: its kind and, where it has one, the
+    back end it resolved to (``"direct (cholespy)"``, ``"amg (pyamg)"``, ``"cg
+    (block_jacobi)"``); read from the object's attributes, so a new back end is named
+    without a change here."""
+    if isinstance(linear, str):
+        return linear
+    kind = str(getattr(linear, "kind", type(linear).__name__.lower()))
+    if isinstance(linear, CG):
+        return f"cg ({linear.preconditioner})"
+    host = getattr(linear, "backend", None)  # HostLinearSolver of a bound Direct / AMG
+    inner = getattr(host, "backend", None)  # its DirectSolver / AMGSolver / ...
+    for attr in ("name", "backend", "library"):
+        v = getattr(inner, attr, None)
+        if isinstance(v, str) and v:
+            return f"{kind} ({v})"
+    if inner is not None:
+        if kind == "amg" or "amg" in type(inner).__name__.lower():
+            return f"{kind} (pyamg)"
+        return f"{kind} ({type(inner).__name__})"
+    return kind
+
+
 def _initial_velocity(scene: Scene, X: np.ndarray, bc: Dirichlet, dtype) -> jax.Array:
     integ = scene.spec.integrator
     assert isinstance(integ, DynamicIntegrator)  # called for dynamic scenes only
@@ -682,11 +739,24 @@ def build(scene) -> Built:
         problem = scene.spec.dim_problem(mesh.dim)
         if problem is not None:
             raise scene.error(problem)
+    # everything is built in the generator's precision (selections, probes and loads on
+    # the float64 rest shape: the same nodes in either precision), then rounded once to
+    # [solver] precision
     psi, params = _material(scene, mesh, md)
-    bc_fn, time_dep = _dirichlet(scene, mesh, md)
+    bc_fn64, time_dep = _dirichlet(scene, mesh, md)
     f_ext = _external_forces(scene, mesh, md)
-    dtype = mesh.points.dtype
+    dtype = scene_dtype(scene)
     X = np.asarray(mesh.points)
+    probes = _probes(scene, X)
+    tip = probes[0][0] if probes else _tip_node(mesh, bc_fn64(1.0 if scene.static else 0.0))
+    mesh = _with_dtype(mesh, dtype)
+    if md is not None:
+        md = dataclasses.replace(md, mesh=_with_dtype(md.mesh, dtype))
+    params = _cast(params, dtype)
+
+    def bc_fn(s: float) -> Dirichlet:
+        return _cast(bc_fn64(s), dtype)
+
     pot = Potential(
         mesh=mesh,
         params=params,
@@ -704,7 +774,7 @@ def build(scene) -> Built:
             h=integ.h, method=integ.method, alpha=integ.alpha, beta=integ.beta
         )
         v0 = _initial_velocity(scene, X, bc, dtype)
-    probes = _probes(scene, X)
+    pot = build_contact(scene, pot)  # [[obstacle]]: barrier contact (else unchanged)
     return Built(
         scene=scene,
         mesh=mesh,
@@ -720,5 +790,5 @@ def build(scene) -> Built:
         x0=mesh.points,
         v0=v0,
         probes=probes,
-        tip=probes[0][0] if probes else _tip_node(mesh, bc),
+        tip=tip,
     )

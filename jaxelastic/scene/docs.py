@@ -108,11 +108,15 @@ _OUTPUTS = """\
 ## Running a scene and reading its outputs
 
 ```
-jaxelastic run [SCENE] --out DIR [--set integrator.duration=1.0 ...] [--no-progress]
+jaxelastic run [SCENE] --out DIR [--set integrator.duration=1.0 ...] [--no-progress] [--json]
 python -m jaxelastic run twist --out results/twist      # a shipped scene by name
 jaxelastic scenes                                        # list the shipped scenes
 jaxelastic schema > scene.schema.json                    # the JSON Schema
 ```
+
+stdout gets a summary table (mesh, material, solver, iterations, largest displacement,
+reaction vs applied load, energy, compile and run time, files written); `--json` prints
+one JSON line instead (`status`, `out`, `summary`, `wall_time`, `compile_time`).
 
 In Python: `summary = jaxelastic.scene.run_scene("my.toml", "out")` (enable float64
 first); `load_scene` and `build` give the validated scene and its arrays. `DIR` receives,
@@ -120,9 +124,11 @@ each file written atomically:
 
 * `dynamic.pvd` + `dynamic_NNNN.vtu` (every `[output].every` steps) and/or `static.pvd` +
   `static_0000.vtu`: open the `.pvd` in ParaView and apply *Warp By Vector* with
-  `displacement`; cell data `J`, `green_strain`, `stress_P`, `von_mises`,
-  `energy_density`; point data `velocity` in dynamics;
-* `final_shape.png` (rest, final and static shapes), and in dynamics
+  `displacement`; cell data `J`, `green_strain`, `stress_P`, `cauchy_stress`,
+  `von_mises`, `energy_density`; point data `cauchy_stress_nodal`, `von_mises_nodal`
+  (recovered nodal stresses) and `velocity` in dynamics;
+* `final_shape.png` (rest, final and static shapes, coloured by the von Mises stress,
+  small displacements magnified with the factor in the title), and in dynamics
   `tip_displacement.png` (first probe, or the node farthest from the supports) and
   `energy.png`;
 * `summary.json`: `scene` (with defaults), `mesh`, `material`, `solver`, `timings` (build,

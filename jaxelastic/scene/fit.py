@@ -290,8 +290,9 @@ def _figure(hist_loss, hist_p, fields, truth, title):
     for j, (name, lab) in enumerate((("E", "E [Pa]"), ("nu", "ν"))):
         ax[j + 1].plot(it, hist_p[:, j], "o-", ms=3, label="fit")  # one line per region
         if truth is not None:
-            for t in np.atleast_1d(truth[name]):
-                ax[j + 1].axhline(t, color="k", ls="--", lw=0.8)
+            for k, t in enumerate(np.atleast_1d(truth[name])):
+                tl = "true value" if k == 0 else None  # one legend entry for all regions
+                ax[j + 1].axhline(t, color="k", ls="--", lw=0.8, label=tl)
         fitted = "fitted" if name in fields else "held fixed"
         ax[j + 1].set(xlabel="iteration", ylabel=lab, title=f"{lab.split()[0]} ({fitted})")
         ax[j + 1].legend(fontsize=8)
@@ -396,7 +397,8 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
         scene: a scene with a ``[fit]`` table (Scene, path, shipped name or dict);
             out_dir: output directory; progress: progress bars and messages.
     Raises:
-        SceneError: invalid scene, no ``[fit]`` section, bad observation files.
+        SceneError: invalid scene, no ``[fit]`` section, bad observation files,
+            ``[solver] precision = "float32"`` (fits run in float64).
         SolveError / GradientError: the target solve or a fit solve failed (the summary is
             still written with ``"status": "failed"``).
         Interrupted: SIGINT/SIGTERM (under
@@ -407,6 +409,12 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
     """
     t_start = time.perf_counter()
     scene = load_scene(scene)
+    if scene.spec.solver.precision != "float64":
+        raise scene.error(
+            '[solver].precision = "float32" is not supported by a fit: the fit\'s '
+            "parameters and adjoint solves (rtol 1e-10) are float64; remove the key or set "
+            'precision = "float64"'
+        )
     memory.check(scene)  # before the output directory is created
     out = _prepare(scene, out_dir)
     summary: dict[str, Any] = dict(

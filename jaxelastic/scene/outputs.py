@@ -15,6 +15,7 @@ import os
 import re
 import sys
 import time
+import warnings
 
 import jax
 import numpy as np
@@ -22,9 +23,9 @@ import numpy as np
 from .. import loads
 from .. import plot as _plot
 from ..energy import energy
-from ..io import TimeSeriesWriter, to_jsonable, write_atomic, write_json
+from ..io import TimeSeriesWriter, nodal_stress, to_jsonable, write_atomic, write_json
 from ..loads import Dirichlet
-from .build import Built
+from .build import Built, linear_solver_name
 from .errors import SceneError
 from .load import Scene
 from .schema import DynamicIntegrator
@@ -47,6 +48,11 @@ __all__ = [
     "static_figure",
     "dynamic_figures",
     "run_header",
+    "COMPILE_EVENTS",
+    "CompileClock",
+    "displacement_report",
+    "run_table",
+    "fit_table",
 ]
 
 OUTPUT_PATTERNS = (
@@ -254,6 +260,8 @@ def run_header(built: Built, out: str) -> dict:
         ),
         material=dict(model=mat.model, **_material_constants(built.params), density=mat.density),
         solver=scene.spec.solver.model_dump(),
+        precision=str(mesh.points.dtype),
+        linear_solver=linear_solver_name(built.solver.linear),
         integrator=None if built.integrator is None else built.integrator._asdict(),
         timings={},
         outputs=dict(directory=out, summary=os.path.join(out, "summary.json"), png=[]),
@@ -280,10 +288,36 @@ def write_static_vtu(built: Built, out: str, t: float, x) -> str:
     return w.pvd_path
 
 
+VON_MISES_LABEL = "von Mises stress [Pa] (nodal)"
+
+
+def von_mises_nodal(built: Built, x):
+    """The recovered nodal von Mises stress ``(n_nodes,)`` [Pa] of positions ``x``
+    (:func:`jaxelastic.io.nodal_stress`), or None where it cannot be evaluated (then the
+    pictures are coloured by |u|)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the VTU writer warns about σ_zz already
+            vm = nodal_stress(built.psi, x, built.mesh, built.params, plane=vtu_plane(built))
+    except Exception:  # noqa: BLE001 — a picture never fails a run: fall back to |u|
+        return None
+    v = vm["von_mises_nodal"]
+    return v if np.isfinite(v).all() else None
+
+
+def _shape_colors(built: Built, x) -> dict:
+    vm = von_mises_nodal(built, x)
+    return {} if vm is None else dict(values=vm, values_label=VON_MISES_LABEL)
+
+
 def static_figure(built: Built, out: str, x) -> str:
-    """``final_shape.png`` of a static solution; returns its path."""
+    """``final_shape.png`` of a static solution (coloured by the von Mises stress, small
+    displacements magnified); returns its path."""
     fig = _plot.final_shape_figure(
-        built.mesh, {"rest": built.x0, "static": x}, title=f"{built.scene.name}: static solution"
+        built.mesh,
+        {"rest": built.x0, "static": x},
+        title=f"{built.scene.name}: static solution",
+        **_shape_colors(built, x),
     )
     path = os.path.join(out, "final_shape.png")
     save_png(fig, path)
@@ -315,7 +349,7 @@ def dynamic_figures(built: Built, out: str, per_step: dict, tip_u, x, x_static) 
     }
     figs = {
         "final_shape.png": _plot.final_shape_figure(
-            built.mesh, shapes, title=f"{name}: final shape"
+            built.mesh, shapes, title=f"{name}: final shape", **_shape_colors(built, x)
         ),
         "tip_displacement.png": _plot.tip_displacement_figure(
             t,
@@ -335,3 +369,329 @@ def dynamic_figures(built: Built, out: str, per_step: dict, tip_u, x, x_static) 
         paths.append(os.path.join(out, fname))
         save_png(fig, paths[-1])
     return paths
+
+
+# ----------------------------------------------------------------------------------------
+# the summary for people (`jaxelastic run` / `fit` print it on stdout)
+# ----------------------------------------------------------------------------------------
+
+COMPILE_EVENTS = (
+    "/jax/core/compile/jaxpr_trace_duration",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration",
+    "/jax/core/compile/backend_compile_duration",
+)
+"""The :mod:`jax.monitoring` events whose time spans :class:`CompileClock` counts (tracing,
+lowering to MLIR, XLA compilation or a persistent-cache load)."""
+
+
+class CompileClock:
+    """Wall time JAX spends compiling, from :mod:`jax.monitoring` time-span events.
+
+    Use as a context manager around a run: ``seconds`` is the length of the union of the
+    time spans of :data:`COMPILE_EVENTS` recorded inside (nested traces of inner jitted
+    functions are counted once), i.e. tracing + lowering + XLA compilation (or reading
+    the executable from the persistent cache). The rest of the wall time is the run.
+    """
+
+    def __init__(self):
+        self.spans: list[tuple[float, float]] = []
+
+    def _listen(self, event: str, start_time: float, end_time: float, **kwargs: str | int) -> None:
+        if event in COMPILE_EVENTS:
+            self.spans.append((float(start_time), float(end_time)))
+
+    def __enter__(self) -> CompileClock:
+        jax.monitoring.register_event_time_span_listener(self._listen)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        with contextlib.suppress(AssertionError, ValueError):  # already unregistered
+            jax.monitoring.unregister_event_time_span_listener(self._listen)
+
+    @property
+    def seconds(self) -> float:
+        """Total length of the union of the recorded spans [s]."""
+        total, end = 0.0, -np.inf
+        for a, b in sorted(self.spans):
+            if b <= end:
+                continue
+            total += b - max(a, end)
+            end = b
+        return total
+
+
+def displacement_report(built: Built, x) -> dict:
+    """The largest nodal displacement of positions ``x`` ``(n_nodes, dim)``: its norm [m]
+    (``max_displacement``), node, rest position and vector, and its ratio to the rest
+    bounding-box diagonal (``max_displacement_relative``)."""
+    X = np.asarray(built.x0)
+    u = np.asarray(x) - X
+    norms = np.linalg.norm(u, axis=1)
+    node = int(np.argmax(norms))
+    diag = float(np.linalg.norm(np.ptp(X, axis=0)))
+    return dict(
+        max_displacement=float(norms[node]),
+        max_displacement_node=node,
+        max_displacement_at=X[node].tolist(),
+        max_displacement_vector=u[node].tolist(),
+        max_displacement_relative=float(norms[node]) / max(diag, 1e-300),
+    )
+
+
+def _g(v, digits: int = 4) -> str:
+    """A number for the table: ``digits`` significant digits, no trailing zeros."""
+    if v is None:
+        return "-"
+    v = float(v)
+    if not np.isfinite(v):
+        return str(v)
+    return f"{v:.{digits}g}"
+
+
+def _vec(v, digits: int = 4) -> str:
+    return "(" + ", ".join(_g(a, digits) for a in v) + ")"
+
+
+def _rows(rows: list[tuple[str, str]]) -> str:
+    """Rows ``(label, text)`` aligned in two columns; a text with newlines continues on
+    indented lines."""
+    width = max(len(k) for k, _ in rows) + 2
+    out = []
+    for k, text in rows:
+        first, *rest = str(text).split("\n")
+        out.append(f"  {k:<{width}}{first}".rstrip())
+        out += [f"  {'':<{width}}{r}" for r in rest]
+    return "\n".join(out)
+
+
+def _mesh_row(m: dict) -> str:
+    dofs = m["n_nodes"] * m["dim"] if "dim" in m else None
+    text = f"{m['n_cells']} {m['element']} cells, {m['n_nodes']} nodes"
+    if dofs is not None:
+        fixed = m.get("n_dirichlet_dofs")
+        text += f", {dofs} dofs" + (f" ({fixed} fixed)" if fixed is not None else "")
+    form = m.get("formulation")
+    if form and form != "standard":
+        text += f", {form}"
+    return text
+
+
+def _material_row(s: dict, constants: bool = True) -> str:
+    """Model, E and nu as the scene gives them (or the model's constants), plane, density;
+    ``constants=False``: without E and nu (a fit, whose scene values are the start)."""
+    mat = s.get("scene", {}).get("material", {})
+    model = mat.get("model", s.get("material", {}).get("model", "?"))
+    shown = [f"{k} = {_g(mat[k])}" for k in ("E", "nu") if k in mat and constants]
+    if not shown and constants:  # a model given by its own constants
+        consts = {k: v for k, v in s.get("material", {}).items() if k not in ("model", "density")}
+        shown = [f"{k} = {_g(v)}" for k, v in consts.items() if isinstance(v, (int, float))]
+    plane = mat.get("plane")
+    if s.get("mesh", {}).get("dim") == 2:
+        shown.append(f"plane {plane or 'strain'}")
+    dens = s.get("material", {}).get("density")
+    if dens is not None:
+        shown.append(f"density {_g(dens)}")
+    return f"{model}: " + ", ".join(shown) if shown else str(model)
+
+
+def _solver_row(s: dict) -> str:
+    sv = s.get("solver") or s.get("scene", {}).get("solver") or {}
+    setting = sv.get("linear", "auto")
+    used = s.get("linear_solver") or setting
+    text = f"Newton ({sv.get('hessian', 'element')} Hessian) + {used}"
+    if setting == "auto" and s.get("linear_solver"):
+        text += ' (chosen by linear = "auto")'
+    prec = s.get("precision") or sv.get("precision")
+    if prec:
+        text += f", {prec}"
+    return text
+
+
+def _reaction_row(r: dict, unit: str = "N") -> str | None:
+    """Reaction vs applied load per direction where either is non-zero."""
+    R = np.asarray(r.get("reaction_force", []), float)
+    F = np.asarray(r.get("total_applied_load", []), float)
+    if R.size == 0:
+        return None
+    if F.size != R.size:
+        F = np.zeros_like(R)
+    scale = max(float(np.abs(R).max()), float(np.abs(F).max()), 1e-300)
+    parts = []
+    for a in range(R.size):
+        if max(abs(R[a]), abs(F[a])) <= 1e-9 * scale:
+            continue
+        name = "xyz"[a]
+        if abs(F[a]) > 1e-9 * scale:
+            parts.append(
+                f"{name}: {_g(R[a])} {unit} vs applied load {_g(F[a])} {unit} "
+                f"(sum {_g(R[a] + F[a], 2)})"
+            )
+        else:
+            parts.append(f"{name}: {_g(R[a])} {unit} (no applied load)")
+    return "\n".join(parts) if parts else f"0 {unit}"
+
+
+def _u_row(d: dict) -> str:
+    text = (
+        f"{_g(d['max_displacement'])} m at node {d['max_displacement_node']}, "
+        f"X = {_vec(d['max_displacement_at'])}"
+    )
+    rel = d.get("max_displacement_relative")
+    if rel is not None:
+        text += f" ({_g(100 * rel, 3)} % of the body diagonal)"
+    return text
+
+
+def _time_row(s: dict, compile_s: float | None, wall_s: float | None) -> str:
+    t = s.get("timings", {})
+    total = wall_s if wall_s is not None else t.get("total")
+    if total is None:
+        return "-"
+    if compile_s is None:
+        text = f"{_g(total, 3)} s in total"
+    else:
+        text = (
+            f"{_g(total, 3)} s = compile {_g(compile_s, 3)} s + run {_g(total - compile_s, 3)} s"
+            "\n(compile: JAX tracing + XLA compilation, from jax.monitoring events)"
+        )
+    if t.get("step_median") is not None and np.isfinite(t["step_median"]):
+        text += f"\nper time step {_g(1e3 * t['step_median'], 3)} ms (median)"
+    return text
+
+
+def _outputs_row(s: dict) -> str:
+    o = s.get("outputs", {})
+    d = o.get("directory", "")
+    names = []
+    if o.get("summary"):
+        names.append(os.path.basename(o["summary"]))
+    if o.get("pvd"):
+        n = o.get("vtu_files")
+        names.append(os.path.basename(o["pvd"]) + (f" ({n} .vtu)" if n else " (+ .vtu)"))
+    if s.get("comparison") is not None and o.get("pvd"):
+        names.append("static.pvd")
+    names += [os.path.basename(p) for p in o.get("png", [])]
+    if o.get("observed"):
+        names.append(os.path.basename(o["observed"]))
+    return f"{d}{os.sep}\n" + ", ".join(names) if names else d
+
+
+def run_table(s: dict, *, compile_s: float | None = None, wall_s: float | None = None) -> str:
+    """The summary of a run for people: an aligned table of the mesh, material, solver,
+    iterations, largest displacement, reaction vs applied load, energy, time (compile and
+    run when ``compile_s`` is known) and the files written.
+
+    Args:
+        s: the run's summary (as :func:`~jaxelastic.scene.run.run_scene` returns it).
+        compile_s: seconds spent compiling (:class:`CompileClock`), or None.
+        wall_s: wall time of the whole command [s] (default: the summary's total).
+    """
+    kind = "dynamic" if "dynamic" in s else "static"
+    head = f"{s['scene']['name']}: {s['status']} ({kind})"
+    rows = [("mesh", _mesh_row(s["mesh"])), ("material", _material_row(s))]
+    rows.append(("solver", _solver_row(s)))
+    st, dy = s.get("static"), s.get("dynamic")
+    if dy is not None:
+        settled = f"settled at t = {_g(dy['settle_time'])} s" if dy["settled"] else "not settled"
+        rows.append(
+            (
+                "steps",
+                f"{dy['steps']} time steps to t = {_g(dy['t_end'])} s, {settled}\n"
+                f"{dy['newton_steps_total']} Newton iterations, "
+                f"{dy['linear_iterations_total']} linear iterations",
+            )
+        )
+        if "max_displacement" in dy:
+            rows.append(("max |u|", _u_row(dy) + f"\n(at t = {_g(dy['t_end'])} s)"))
+        tip = dy["tip"]
+        if tip.get("source") != "probe 0":  # else the probe row says it
+            rows.append(("tip u", f"{_vec(tip['displacement'])} m at node {tip['node']}"))
+        per = dy.get("per_step") or {}
+        if per.get("elastic"):
+            rows.append(
+                (
+                    "energy",
+                    f"elastic {_g(per['elastic'][-1])} J, kinetic {_g(per['kinetic'][-1])} J "
+                    f"at t = {_g(dy['t_end'])} s",
+                )
+            )
+        if st is not None and "reaction_force" in st:
+            c = s.get("comparison") or {}
+            rows.append(
+                (
+                    "static",
+                    f"max |u| {_g(st.get('max_displacement'))} m, elastic energy "
+                    f"{_g(st.get('elastic_energy'))} J; max distance to the dynamic state "
+                    f"{_g(c.get('max_nodal_distance'), 3)} m",
+                )
+            )
+            row = _reaction_row(st)
+            if row:
+                rows.append(("reaction", row + "\n(of the static solution)"))
+    elif st is not None and "newton_steps" in st:
+        n_inc = len(st.get("load_steps", [])) or 1
+        rows.append(
+            (
+                "iterations",
+                f"{n_inc} load step{'s' if n_inc > 1 else ''}, {st['newton_steps']} Newton, "
+                f"{st['linear_iterations']} linear; final residual {_g(st['final_residual'], 2)}",
+            )
+        )
+        if "max_displacement_node" in st:
+            rows.append(("max |u|", _u_row(st)))
+        else:
+            rows.append(("max |u|", f"{_g(st.get('max_displacement'))} m"))
+        row = _reaction_row(st)
+        if row:
+            rows.append(("reaction", row))
+        rows.append(("energy", f"elastic {_g(st['elastic_energy'])} J"))
+    for i, p in enumerate(s.get("probes", [])):
+        rows.append((f"probe {i}", f"u = {_vec(p['displacement'])} m at node {p['node']}"))
+    rows.append(("time", _time_row(s, compile_s, wall_s)))
+    rows.append(("outputs", _outputs_row(s)))
+    return head + "\n" + _rows(rows)
+
+
+def fit_table(s: dict, *, compile_s: float | None = None, wall_s: float | None = None) -> str:
+    """The summary of a fit for people (like :func:`run_table`): the fitted E and ν with
+    the truth and relative errors when known, the data, the iterations, time and files."""
+    r = s["result"]
+    head = (
+        f"{s['scene']['name']}: fit {s['status']} ({r['stop_reason']}, "
+        f"{r['iterations']} iterations, loss {_g(r['loss'], 3)})"
+    )
+    rows = [("mesh", _mesh_row(s["mesh"])), ("material", _material_row(s, constants=False))]
+    rows.append(("solver", _solver_row(s)))
+    t, init = s.get("target"), s.get("initial") or {}
+    for k in ("E", "nu"):
+        vals = np.atleast_1d(r[k])
+        text = ", ".join(_g(v, 6) for v in vals)
+        extra = []
+        if t:
+            errs = ", ".join(_g(e, 2) for e in np.atleast_1d(r[f"{k}_rel_error"]))
+            extra.append(f"true {', '.join(_g(v, 6) for v in np.atleast_1d(t[k]))}")
+            extra.append(f"rel. error {errs}")
+        if k in init:
+            extra.append(f"start {_g(init[k])}")
+        rows.append((k, text + (f"  ({'; '.join(extra)})" if extra else "")))
+    o = s.get("observations", {})
+    rows.append(
+        (
+            "data",
+            f"{len(s.get('cases', []))} load case(s), {o.get('n_markers')} observed nodes "
+            f"({_g(100 * o.get('fraction_of_nodes', 0.0), 3)} %), noise {_g(o.get('noise'))}",
+        )
+    )
+    h = s.get("history", {})
+    newton, lin = h.get("newton_steps"), h.get("linear_iterations")
+    if newton is not None and lin is not None:
+        rows.append(
+            (
+                "iterations",
+                f"{r['iterations']} optimiser, {int(np.sum(newton))} Newton, "
+                f"{int(np.sum(lin))} linear (all solves)",
+            )
+        )
+    rows.append(("time", _time_row(s, compile_s, wall_s)))
+    rows.append(("outputs", _outputs_row(s)))
+    return head + "\n" + _rows(rows)

@@ -24,9 +24,11 @@ from ..loads import Dirichlet
 from ..solvers import Solution, SolveError, solve_incremental
 from . import interrupt, memory
 from .build import Built, build
+from .contact import contact_report, min_gap
 from .interrupt import Interrupted
 from .load import load_scene
 from .outputs import (
+    displacement_report,
     dynamic_figures,
     elastic_energy,
     finish_summary,
@@ -85,6 +87,7 @@ def static_solve(
     bc: Dirichlet | None = None,
     what: str = "static solve",
     callback=None,
+    pot=None,
 ) -> tuple[Any, list[dict], Solution]:
     """Newton with ``[integrator].load_steps`` increments and cut-back on failure.
 
@@ -95,6 +98,9 @@ def static_solve(
         what: names the solve in the error message.
         callback: ``callback(s, solution)`` after every converged increment (default:
             :func:`~jaxelastic.scene.interrupt.check`, which stops there on SIGINT/SIGTERM).
+        pot: the static potential (default: the built one without mass; a dynamic scene's
+            comparison passes :func:`~jaxelastic.dynamics.static_potential`, which reuses
+            the time steps' compiled solve).
     Returns:
         ``(x (n_nodes, dim), per-increment stats, solution of the last increment)``.
     Raises:
@@ -104,7 +110,7 @@ def static_solve(
     n = cfg.load_steps if isinstance(cfg, StaticIntegrator) else 1
     path = built.bc_fn if bc is None else (lambda s: bc)
     sol = solve_incremental(
-        built.potential.replace(mass=None),
+        built.potential.replace(mass=None) if pot is None else pot,
         path(1.0),
         x0=built.x0,
         solver=built.solver,
@@ -140,7 +146,7 @@ def _static_report(built: Built, x, stats: list[dict], sol: Solution) -> dict:
         final_residual=stats[-1]["residual"],
         residual_history=np.asarray(sol.stats["residual_history"])[: steps + 1].tolist(),
         elastic_energy=elastic_energy(built, x),
-        max_displacement=float(np.linalg.norm(np.asarray(x) - built.x0, axis=1).max()),
+        **displacement_report(built, x),
         **reaction_report(built, x, built.bc),
     )
 
@@ -163,6 +169,9 @@ def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
         raise Interrupted(_signame(e), _static_detail(built, done)) from None
     summary["timings"]["solve_incl_compile"] = time.perf_counter() - t0
     summary["static"] = _static_report(built, x, stats, sol)
+    if built.potential.contact is not None:  # min distance over the converged increments
+        gaps = [min_gap(built.potential, so.x, si) for si, so in done]
+        summary["contact"] = contact_report(built.potential, x, 1.0, min(gaps, default=None))
     summary["probes"] = probe_report(built, x)
     t0 = time.perf_counter()
     if ocfg.vtu:
@@ -230,6 +239,7 @@ class _Monitor:
         self.scale = 0.0  # the largest kinetic + |elastic| + |external| energy so far
         self.settled_at: float | None = None
         self.t_out = 0.0
+        self.min_gap = math.inf  # contact: the smallest node–obstacle distance of any step
 
     def write(self, t: float, state) -> None:
         assert self.writer is not None  # called only when there is a writer
@@ -244,6 +254,8 @@ class _Monitor:
         self.n += 1
         self.state = state
         self.records.append(record)
+        if self.built.potential.contact is not None:
+            self.min_gap = min(self.min_gap, min_gap(self.built.potential, state.x, state.t))
         tip, X = self.built.tip, np.asarray(self.built.x0)
         self.tip_u.append(np.asarray(state.x)[tip] - X[tip])
         ke, el = float(record["kinetic"]), float(record["elastic"])
@@ -359,6 +371,7 @@ def _dynamic_summary(built: Built, mon: _Monitor, per: dict, summary: dict) -> N
         newton_steps_total=int(sum(per["newton_steps"])),
         linear_iterations_total=int(sum(per["linear_iterations"])),
         final_residual=per["residual"][-1] if mon.n else None,
+        **displacement_report(built, mon.state.x),
         tip=dict(
             node=built.tip,
             rest_position=X[built.tip].tolist(),
@@ -372,11 +385,13 @@ def _dynamic_summary(built: Built, mon: _Monitor, per: dict, summary: dict) -> N
 
 def _compare_static(built: Built, out: str, progress: bool, mon: _Monitor, summary: dict):
     """The static solution at the final load and its distance to the dynamic one."""
-    log(progress, "static solve of the same load (includes compilation) ...")
+    log(progress, "static solve of the same load ...")
     t_end, tip, X = mon.records[-1]["t"] if mon.records else 0.0, built.tip, np.asarray(built.x0)
     bc = built.bc_fn(t_end)
     t0 = time.perf_counter()
-    x_static, stats, _ = static_solve(built, bc=bc, what="static comparison solve")
+    assert built.integrator is not None  # a dynamic scene
+    pot = dynamics.static_potential(built.potential, built.integrator)  # the steps' compile
+    x_static, stats, _ = static_solve(built, bc=bc, what="static comparison solve", pot=pot)
     summary["timings"]["static_solve_incl_compile"] = time.perf_counter() - t0
     u_s = np.asarray(x_static) - X
     dist = np.linalg.norm(np.asarray(mon.state.x) - np.asarray(x_static), axis=1)
@@ -409,6 +424,9 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
     with interrupt.shield():
         per = _per_step(built, mon.records)
         _dynamic_summary(built, mon, per, summary)
+        if built.potential.contact is not None and mon.n:
+            pot, x, t = built.potential, mon.state.x, mon.state.t
+            summary["contact"] = contact_report(pot, x, t, mon.min_gap)
     if stopped is not None:
         summary["timings"]["outputs"] = mon.t_out
         raise stopped
@@ -467,10 +485,11 @@ def run_scene(scene, out_dir, progress: bool = True) -> dict:
     scene = load_scene(scene)
     memory.check(scene)  # before the output directory is created
     out = prepare_out(out_dir, scene)
-    if jnp.zeros(()).dtype != jnp.float64:
+    if scene.spec.solver.precision == "float64" and jnp.zeros(()).dtype != jnp.float64:
         warnings.warn(
-            "running a scene in float32: enable float64 with "
-            'jax.config.update("jax_enable_x64", True) (the CLI does)',
+            'running a scene in float32 although [solver] precision = "float64": enable '
+            'float64 with jax.config.update("jax_enable_x64", True) (the CLI does), or set '
+            'precision = "float32"',
             UserWarning,
             stacklevel=2,
         )

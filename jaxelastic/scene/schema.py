@@ -60,6 +60,8 @@ __all__ = [
     "TractionSpec",
     "PointLoadSpec",
     "GravitySpec",
+    "ObstacleSpec",
+    "ContactSpec",
     "SolverSpec",
     "StaticIntegrator",
     "DynamicIntegrator",
@@ -679,6 +681,57 @@ class GravitySpec(Table):
     g: Vector = Field(description="gravitational acceleration [m/s^2]")
 
 
+class PlaneObstacle(Table):
+    """The half-space behind a plane (its normal points to the free side)."""
+
+    point: Vector = Field(description="a point of the plane [m]")
+    normal: Vector = Field(description="outward normal (any length)")
+
+
+class SphereObstacle(Table):
+    """A rigid ball (a disc in 2D)."""
+
+    center: Vector = Field(description="center [m]")
+    radius: Positive = Field(description="radius [m]")
+
+
+class ObstacleSpec(Table):
+    """A rigid obstacle (barrier contact, IPC): exactly one of ``plane``, ``sphere``, ``box``."""
+
+    plane: PlaneObstacle | None = Field(default=None, description="{ point = [..], normal = [..] }")
+    sphere: SphereObstacle | None = Field(
+        default=None, description="{ center = [..], radius = .. }"
+    )
+    box: BoxSelector | None = Field(default=None, description="{ lo = [..], hi = [..] } [m]")
+    friction: NonNegative | None = Field(
+        default=None, description="Coulomb coefficient mu (default [contact].friction)"
+    )
+    motion: CallableName | None = Field(
+        default=None,
+        description='"module:function" t -> (dim,) translation [m] (dynamics: time [s]; '
+        "static: the load factor in [0, 1])",
+    )
+
+    @model_validator(mode="after")
+    def _one_shape(self):
+        given = [k for k in ("plane", "sphere", "box") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise fail(f"{{at}} needs exactly one of plane, sphere, box; got {given}")
+        return self
+
+
+class ContactSpec(Table):
+    """Barrier contact settings (all optional; used when there is an ``[[obstacle]]``)."""
+
+    dhat: Positive | None = Field(
+        default=None, description="barrier reach [m] (default 1e-3 x the bounding-box diagonal)"
+    )
+    kappa: Positive | None = Field(
+        default=None, description="barrier stiffness [N/m] (default: from the elastic stiffness)"
+    )
+    friction: NonNegative = Field(default=0.0, description="default Coulomb coefficient mu")
+
+
 # ----------------------------------------------------------------------------------------
 # [solver], [integrator], [output]
 # ----------------------------------------------------------------------------------------
@@ -704,10 +757,11 @@ class SolverSpec(Table):
         description='"element" (exact element Hessians, assembled), "hvp" (matrix-free '
         'Hessian-vector products) or "projected" (PSD-projected element Hessians)',
     )
-    linear: Literal["auto", "cg", "direct", "amg"] = Field(
+    linear: Literal["auto", "cg", "direct", "amg", "multilevel"] = Field(
         default="auto",
         description='"auto" (sparse Cholesky up to 10k dofs in 3D / 100k in 2D, else '
-        'AMG-preconditioned CG), "direct", "amg", or "cg" (matrix-free PCG inside jit)',
+        'AMG-preconditioned CG), "direct", "amg", "multilevel" (device multigrid-'
+        'preconditioned CG inside jit, vmap-able) or "cg" (matrix-free PCG inside jit)',
     )
     preconditioner: Literal["block_jacobi", "jacobi", "none"] = Field(
         default="block_jacobi", description='preconditioner of linear = "cg"'
@@ -723,6 +777,12 @@ class SolverSpec(Table):
     )
     require_positive_J: Bool = Field(
         default=False, description="also reject trial steps where an element has J <= 0"
+    )
+    precision: Literal["float64", "float32"] = Field(
+        default="float64",
+        description='floating-point precision of the mesh, loads and solve: "float64" or '
+        '"float32" (half the memory, faster kernels; Newton stops with SUCCESS at the '
+        "residual's round-off floor, recorded as residual_floor)",
     )
     max_memory_gb: Positive | None = Field(
         default=None,
@@ -962,6 +1022,10 @@ class SceneSpec(Table):
         default=[], description="nodal forces ([[point_load]])"
     )
     gravity: GravitySpec | None = Field(default=None, description="gravity")
+    obstacle: Annotated[list[ObstacleSpec], BeforeValidator(_array_of_tables)] = Field(
+        default=[], description="rigid obstacles with barrier contact ([[obstacle]])"
+    )
+    contact: ContactSpec | None = Field(default=None, description="contact settings")
     solver: SolverSpec = Field(default=SolverSpec(), description="the Newton solver")
     integrator: Integrator = Field(
         default=StaticIntegrator(), description="static (default) or dynamic"
@@ -1088,6 +1152,12 @@ class SceneSpec(Table):
                         yield "vec", f"{key}.{k}", getattr(ld, k)
         if self.gravity is not None:
             yield "vec", "[gravity].g", self.gravity.g
+        for i, ob in enumerate(self.obstacle):
+            for shape in ("plane", "sphere", "box"):
+                spec = getattr(ob, shape)
+                for k, v in ({} if spec is None else spec.model_dump()).items():
+                    if isinstance(v, tuple):
+                        yield "vec", f"[obstacle][{i}].{shape}.{k}", v
         iv = getattr(self.integrator, "initial_velocity", None)
         if isinstance(iv, tuple):
             yield "vec", "[integrator].initial_velocity", iv

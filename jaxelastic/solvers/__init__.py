@@ -18,6 +18,7 @@ from .linear import AUTO_DIRECT_MAX_DOFS as AUTO_DIRECT_MAX_DOFS
 from .linear import CG as CG
 from .linear import LINEAR_SOLVERS as LINEAR_SOLVERS
 from .linear import Direct as Direct
+from .linear import Multilevel as Multilevel
 from .linear import bind_linear as bind_linear
 from .linear import cg as cg
 from .newton import Newton as Newton

@@ -122,7 +122,7 @@ def _exact_system(pot: Potential, x, mask) -> NewtonSystem:
     """The exact Hessian at x: element Hessians + lumped mass (HVP if stiffness damping)."""
     free = ~mask
     fm = free.astype(x.dtype)
-    Ke = pot_mod.elastic_element_hessians(pot, x, project=False)
+    Ke = pot_mod.elastic_element_hessians(pot, x, project=False, exact_contact=True)
 
     def operator(K):
         def A(v):
@@ -133,7 +133,7 @@ def _exact_system(pot: Potential, x, mask) -> NewtonSystem:
     if pot.stiffness_damping is not None:
 
         def H(v):
-            return pot_mod.hessian_vp(pot, x, v)
+            return pot_mod.hessian_vp(pot, x, v, exact_contact=True)
     else:
 
         def H(v):

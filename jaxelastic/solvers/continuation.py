@@ -6,7 +6,10 @@ at each trial ``s`` the potential's external forces are ``s·f_ext`` and the Dir
 ``path(s)`` (default: the prescribed displacement scaled by ``s``). A failed solve halves
 the increment (from the last converged state); a success grows it again (×1.5, at most the
 initial increment). Every increment is one :func:`~jaxelastic.solvers.solve.solve`; all
-share one compilation (only array values change between them).
+share one compilation (only array values change between them). With a contact term
+(``pot.contact``) the obstacles' prescribed motion is evaluated at ``s``, friction is
+lagged at the last converged state, and nodes an obstacle swept over are pushed out of it
+before the increment's Newton solve.
 """
 
 from __future__ import annotations
@@ -98,7 +101,12 @@ def solve_incremental(
     while s < 1.0:
         s_try = min(1.0, s + ds)
         p = pot if f_full is None else pot.replace(f_ext=s_try * f_full)
-        last = solve(p, path(s_try), x0=x, solver=solver, throw=False)
+        x_start = x
+        if pot.contact is not None:  # obstacles at time s_try, friction lagged at x (time s)
+            c = pot.contact.at_time(s)
+            c = (c.lag(x) if c.friction is not None else c).at_time(s_try)
+            p, x_start = p.replace(contact=c), c.make_feasible(x)
+        last = solve(p, path(s_try), x0=x_start, solver=solver, throw=False)
         history.append(_record(s_try, last))
         if bool(last.ok):
             s, x = s_try, last.x

@@ -5,9 +5,13 @@ sparsity pattern and keeps a :mod:`~jaxelastic.solvers.backends` back end. The d
 (:func:`jaxelastic.solvers.linear.cg`) runs every Krylov iteration and reaches the host
 through :func:`jax.pure_callback` only to
 
-* :meth:`HostLinearSolver.factor`: assemble the element Hessians computed by JAX into CSR
-  (one ``bincount``) and factorise them (``"direct"``: sparse Cholesky, LU fallback) or
-  build / refresh an AMG hierarchy (``"amg"``), returning a status code; and
+* :meth:`HostLinearSolver.factor_upper`: take the upper-triangle CSR data of the Newton
+  matrix, which JAX assembled on the device from the element Hessians (a segment sum over
+  the int32 :attr:`HostLinearSolver.element_map`, symmetrisation folded in: only the
+  ``(nnz_upper,)`` vector crosses to the host), eliminate the Dirichlet dofs, and factorise
+  (``"direct"``: sparse Cholesky, see :class:`~jaxelastic.solvers.backends.DirectSolver`)
+  or build / refresh an AMG hierarchy (``"amg"``), returning a status code
+  (:meth:`HostLinearSolver.factor` does the same from element Hessians on the host); and
 * :meth:`HostLinearSolver.apply`: ``K⁻¹r`` (direct, exact) or one V-cycle ``M⁻¹r`` (AMG).
 
 The host runs no Krylov loop and never modifies the Hessian: when :meth:`factor` reports
@@ -81,8 +85,9 @@ class HostLinearSolver:
     Args:
         cells: ``(n_cells, k)`` connectivity; points: ``(n_nodes, dim)`` rest positions.
         fixed: ``(n_nodes, dim)`` bool Dirichlet mask.
-        kind: ``"direct"`` (CHOLMOD Cholesky via cholespy, SuperLU fallback; :meth:`apply`
-            is an exact solve) or ``"amg"`` (PyAMG smoothed aggregation with rigid-body
+        kind: ``"direct"`` (sparse Cholesky: MKL PARDISO, CHOLMOD, cholespy or SuperLU,
+            see :class:`~jaxelastic.solvers.backends.DirectSolver`; :meth:`apply` is an
+            exact solve) or ``"amg"`` (PyAMG smoothed aggregation with rigid-body
             modes; :meth:`apply` is one V-cycle, a preconditioner).
         **opts: options of the back end (:class:`~jaxelastic.solvers.backends.DirectSolver`
             or :class:`~jaxelastic.solvers.backends.AMGSolver`).
@@ -93,8 +98,8 @@ class HostLinearSolver:
     pattern analysis.
 
     Counters: ``calls`` (factor + apply), ``factorizations``, ``applications``;
-    ``last_info`` describes the last :meth:`factor` (``status``, ``assemble_time``,
-    ``setup_time``, and ``method``/``positive_definite`` (direct) or ``levels``,
+    ``last_info`` describes the last factorisation (``status``, ``assemble_time``,
+    ``setup_time``, and ``backend``/``method``/``positive_definite`` (direct) or ``levels``,
     ``operator_complexity``, ``rebuilt`` (AMG)).
     """
 
@@ -164,6 +169,25 @@ class HostLinearSolver:
         """True when :meth:`apply` is an exact solve (``"direct"``), False for AMG."""
         return isinstance(self.backend, DirectSolver)
 
+    @property
+    def element_map(self) -> np.ndarray:
+        """``(n_cells * m(m+1)/2,)`` int32 upper-triangle slot of every local upper entry of
+        every element Hessian (:attr:`~jaxelastic.solvers.pattern.SparsityPattern.element_map`),
+        for assembling the upper data on the device."""
+        return self.pattern.element_map
+
+    @property
+    def nnz_upper(self) -> int:
+        """Length of the upper-triangle data vector that :meth:`factor_upper` takes."""
+        return self.pattern.nnz_upper
+
+    def _diag(self, mass_diag):
+        if mass_diag is None or not np.any(mass_diag):
+            return None
+        diag = np.repeat(np.asarray(mass_diag, dtype=np.float64), self.shape[1])
+        diag[self.fixed] = 0.0
+        return diag
+
     def assemble(self, Ke, mass_diag=None) -> sp.csr_matrix:
         """Global matrix with Dirichlet elimination, ``(n_nodes*dim, n_nodes*dim)`` CSR.
 
@@ -174,14 +198,12 @@ class HostLinearSolver:
 
         Fixed dofs get identity rows and columns; the pattern is kept (AMG reuse).
         """
-        diag = None
-        if mass_diag is not None and np.any(mass_diag):
-            diag = np.repeat(np.asarray(mass_diag, dtype=np.float64), self.shape[1])
-            diag[self.fixed] = 0.0
-        return self.pattern.assemble(Ke, symmetrize=True, diag=diag)
+        return self.pattern.assemble(Ke, diag=self._diag(mass_diag))
 
     def factor(self, Ke, mass_diag, token=None) -> np.int32:
-        """Assemble and factorise (direct) or build / refresh the hierarchy (AMG).
+        """Assemble on the host and factorise (direct) or build / refresh the hierarchy
+        (AMG). The solvers of the library assemble on the device and call
+        :meth:`factor_upper`; this entry point is for host callers.
 
         Args:
             Ke: ``(n_cells, k*dim, k*dim)`` element Hessians (any float dtype).
@@ -194,34 +216,69 @@ class HostLinearSolver:
         """
         with self._lock:
             self.calls += 1
-            return np.int32(self._factor(Ke, mass_diag))
+            return np.int32(self._factor(self._host_upper(Ke), mass_diag))
 
-    def _factor(self, Ke, mass_diag) -> Status:
-        t0 = time.perf_counter()
+    def factor_upper(self, data, mass_diag, token=None) -> np.int32:
+        """:meth:`factor` from the assembled upper-triangle data.
+
+        Args:
+            data: ``(nnz_upper,)`` ``Σ_c ½(Ke_c + Ke_cᵀ)`` on the upper-triangle pattern,
+                before elimination (a segment sum of the element Hessians over
+                :attr:`element_map`); not modified.
+            mass_diag: ``(n_nodes,)`` diagonal term per node (zeros for none).
+            token: ignored; a data dependency that orders the callbacks.
+        """
+        with self._lock:
+            self.calls += 1
+            return np.int32(self._factor(data, mass_diag))
+
+    def _host_upper(self, Ke):
         Ke = np.asarray(Ke, dtype=np.float64)
+        if not np.all(np.isfinite(Ke)):
+            return None
+        return self.pattern.upper_data(Ke)
+
+    def _factor(self, data, mass_diag) -> Status:
+        t0 = time.perf_counter()
         md = None if mass_diag is None else np.asarray(mass_diag, dtype=np.float64)
         self._ready = False
-        if not (np.all(np.isfinite(Ke)) and (md is None or np.all(np.isfinite(md)))):
+        ok = data is not None and (md is None or bool(np.all(np.isfinite(md))))
+        if data is not None:
+            data = np.array(data, dtype=np.float64)  # own, writable (14 MB at 146k tets)
+            if data.shape != (self.pattern.nnz_upper,):
+                raise ValueError(
+                    f"upper data must have shape ({self.pattern.nnz_upper},), got {data.shape}"
+                )
+            ok = ok and bool(np.all(np.isfinite(data)))
+        if data is None or not ok:
             self.last_info = dict(status=NONFINITE, assemble_time=time.perf_counter() - t0)
             return NONFINITE
-        K = self.assemble(Ke, md)
+        P = self.pattern
+        P.finish(data, diag=self._diag(md))
         t_asm = time.perf_counter() - t0
         self.factorizations += 1
-        self.backend.update(K)
-        self._ready = self.backend.ready
-        if isinstance(self.backend, DirectSolver):
-            pd = bool(self.backend.positive_definite)
-            info: dict[str, Any] = dict(method=self.backend.method, positive_definite=pd)
-            info["setup_time"] = self.backend.setup_time
+        backend = self.backend
+        if isinstance(backend, DirectSolver):
+            if backend.wants_upper:
+                backend.update_upper(P.upper_matrix(data))
+            else:
+                backend.update(P.matrix(P.full_data(data)))
+            pd = bool(backend.positive_definite)
+            info: dict[str, Any] = dict(
+                method=backend.method, positive_definite=pd, backend=backend.backend
+            )
+            info["setup_time"] = backend.setup_time
         else:
-            pd = bool(np.all(K.diagonal()[~self.fixed] > 0))
-            info = self.backend.info()
+            backend.update(P.matrix(P.full_data(data)))
+            pd = bool(np.all(data[P.diag_slots][~self.fixed] > 0))
+            info = backend.info()
+        self._ready = backend.ready
         status = SUCCESS if pd else NOT_POSITIVE_DEFINITE
         self.last_info = dict(info, status=status, assemble_time=t_asm)
         return status
 
     def apply(self, r, token=None) -> np.ndarray:
-        """``K⁻¹ r`` (direct) or one V-cycle ``M⁻¹ r`` (AMG) with the last :meth:`factor`.
+        """``K⁻¹ r`` (direct) or one V-cycle ``M⁻¹ r`` (AMG) with the last factorisation.
 
         Args:
             r: ``(..., n_nodes, dim)`` residual(s); leading axes are independent
@@ -230,7 +287,7 @@ class HostLinearSolver:
 
         Returns:
             Array shaped and typed like ``r`` (computed in float64), zero on fixed dofs;
-            NaN on the free dofs when nothing is factorised (the last :meth:`factor`
+            NaN on the free dofs when nothing is factorised (the last factorisation
             reported :data:`NONFINITE`, or a singular matrix).
         """
         with self._lock:
@@ -246,7 +303,14 @@ class HostLinearSolver:
         """
         with self._lock:
             self.calls += 1
-            status = np.int32(self._factor(Ke, mass_diag))
+            status = np.int32(self._factor(self._host_upper(Ke), mass_diag))
+            return self._apply(r), status
+
+    def factor_solve_upper(self, data, mass_diag, r, token=None) -> tuple[np.ndarray, np.int32]:
+        """:meth:`factor_upper` then :meth:`apply` under one lock: ``(K⁻¹ r, status)``."""
+        with self._lock:
+            self.calls += 1
+            status = np.int32(self._factor(data, mass_diag))
             return self._apply(r), status
 
     def _apply(self, r) -> np.ndarray:

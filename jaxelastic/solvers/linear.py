@@ -7,9 +7,11 @@
   happens in the first iteration, and says so in its status.
 * Linear-solver objects are small frozen (hashable, static under jit) dataclasses:
   :class:`CG` (matrix-free, block-Jacobi/Jacobi preconditioned), :class:`Direct` (sparse
-  Cholesky on the host) and :class:`AMG` (PyAMG smoothed aggregation on the host as the
-  preconditioner of :func:`cg`). String shortcuts ``"cg"``, ``"direct"``, ``"amg"`` and
-  ``"auto"`` are resolved by :func:`bind_linear`.
+  Cholesky on the host), :class:`AMG` (PyAMG smoothed aggregation on the host as the
+  preconditioner of :func:`cg`) and :class:`Multilevel` (aggregation multigrid built once
+  on the host, applied on the device inside ``jit``: :mod:`~jaxelastic.solvers.multilevel`).
+  String shortcuts ``"cg"``, ``"direct"``, ``"amg"``, ``"multilevel"`` and ``"auto"`` are
+  resolved by :func:`bind_linear`.
 * Host back ends are reached through ``jax.pure_callback``: the host only *factorises*
   (assembles the element Hessians into CSR and factorises / builds a hierarchy) and
   *applies* (an exact solve or one V-cycle); the iterations and the PSD projection of an
@@ -21,6 +23,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Callable
 from typing import Any, NamedTuple, Self
 
@@ -32,7 +35,10 @@ from jax.core import Tracer
 
 from ..energy import project_psd
 from ..potential import Potential, mass_diagonal, node_hessian_blocks
-from .host import HostLinearSolver
+from .backends import available_direct_backends
+from .host import HostLinearSolver, content_key
+from .multilevel import Hierarchy, build_hierarchy, preconditioner
+from .pattern import local_upper
 from .results import Solution, Status
 
 __all__ = [
@@ -42,20 +48,33 @@ __all__ = [
     "CG",
     "Direct",
     "AMG",
+    "Multilevel",
     "LinearSolver",
     "NewtonSystem",
     "bind_linear",
     "LINEAR_SOLVERS",
     "AUTO_DIRECT_MAX_DOFS",
+    "AUTO_DIRECT_MAX_DOFS_P2",
 ]
 
-LINEAR_SOLVERS = ("auto", "cg", "direct", "amg")
-AUTO_DIRECT_MAX_DOFS = {2: 100_000, 3: 10_000}
+LINEAR_SOLVERS = ("auto", "cg", "direct", "amg", "multilevel")
+AUTO_DIRECT_MAX_DOFS = {2: 100_000, 3: 25_000}
 """``"auto"``: sparse Cholesky up to this many dofs (per dimension), AMG-preconditioned CG
-above. 3D: measured by ``scripts/bench_linear.py`` (AMG is 20–70× faster than the
-simplicial factorisation from ~20k dofs on; the fill grows quickly in 3D). 2D: the fill of a
-nested-dissection factorisation stays small (Cook P1 at 33k dofs: Cholesky 1.1 s vs AMG-CG
-20 s, ``scripts/report_accuracy.py``)."""
+above. 3D: measured with MKL PARDISO by ``scripts/bench_solvers.py`` on whole twist solves
+(5 Newton steps, warm; direct / AMG time 0.30 at 10k dofs, 0.93 at 24k, 1.49 at 47k:
+crossover ≈ 27k; the fill grows like n^(4/3) in 3D). 2D: the fill of a nested-dissection
+factorisation stays small (Cook P1 at 33k dofs: Cholesky 1.1 s vs AMG-CG 20 s,
+``scripts/report_accuracy.py``)."""
+
+AUTO_DIRECT_MAX_DOFS_P2 = {2: 100_000, 3: 80_000}
+"""The same for elements on the P2 node set (tri6, tet10 and the composite tri3x4, tet4x8):
+their matrices couple more dofs per row and smoothed aggregation needs more CG iterations.
+Measured on the neo-Hookean P2 steel bracket (31k dofs, 5 load steps,
+``scripts/bench_bracket.py``): warm solve direct 58 s / 20 Newton steps / 1.1 GB against
+AMG 311 s / 26 steps / 2.5 GB (loaded machine). 80k is an extrapolation of that 5× lead
+with the P1 slope of the direct/AMG ratio (∝ n^0.7), kept conservative."""
+
+_P2_NODES = ("tri6", "tet10", "tri3x4", "tet4x8")
 
 
 def _dot(a, b):
@@ -239,9 +258,29 @@ class CG:
         return cg(system.A, b, M, tol=rtol * bn, max_iter=max_iter)
 
 
+def _element_map(backend: HostLinearSolver):
+    """The int32 element→upper-CSR map ``(n_cells·m(m+1)/2,)`` of the bound pattern, handed
+    to XLA by a callback (a copy per call, 4 bytes per entry: 46 MB at 146k tets) rather
+    than closed over, which would make it an XLA constant (DESIGN §4)."""
+    emap = backend.element_map
+    out = jax.ShapeDtypeStruct(emap.shape, jnp.int32)
+    return jax.pure_callback(lambda: backend.element_map, out, vmap_method="sequential")
+
+
+def _upper_data(backend: HostLinearSolver, Ke):
+    """Upper-triangle CSR data ``(nnz_upper,)`` of ``Σ_c ½(Ke_c + Ke_cᵀ)`` assembled in XLA
+    (a segment sum over the int32 map): only this vector crosses to the host, never the
+    ``(n_cells, m, m)`` element Hessians. ``Ke``: ``(n_cells, m, m)``."""
+    m = Ke.shape[-1]
+    iu, ju = local_upper(m)
+    v = 0.5 * (Ke[:, iu, ju] + Ke[:, ju, iu])  # (n_cells, m(m+1)/2), the map's order
+    emap = _element_map(backend)
+    return jax.ops.segment_sum(v.reshape(-1), emap, num_segments=backend.nnz_upper)
+
+
 def _host_factor(backend: HostLinearSolver, Ke, md, token):
     out = jax.ShapeDtypeStruct((), jnp.int32)
-    return _no_vmap_callback(backend.factor, out, Ke, md, token)
+    return _no_vmap_callback(backend.factor_upper, out, _upper_data(backend, Ke), md, token)
 
 
 def _host_apply(backend: HostLinearSolver, r, token):
@@ -252,20 +291,24 @@ def _host_apply(backend: HostLinearSolver, r, token):
 
 def _host_factor_solve(backend: HostLinearSolver, Ke, md, r, token):
     out = (jax.ShapeDtypeStruct(r.shape, r.dtype), jax.ShapeDtypeStruct((), jnp.int32))
-    return _no_vmap_callback(backend.factor_solve, out, Ke, md, r, token)
+    data = _upper_data(backend, Ke)
+    return _no_vmap_callback(backend.factor_solve_upper, out, data, md, r, token)
 
 
 def _host_factor_if(backend: HostLinearSolver, Ke, md, need):
     """Factorise ``Ke`` on the host if ``need``; returns the status token (0 if skipped).
-    Under vmap with only ``need`` batched it factorises once, if any element needs it."""
+    Under vmap with only ``need`` batched it factorises once, if any element needs it; the
+    device assembly runs only when needed."""
     out = jax.ShapeDtypeStruct((), jnp.int32)
 
-    def host(Ke, md, need):
-        return backend.factor(Ke, md) if bool(need) else np.int32(0)
+    def host(data, md, need):
+        return backend.factor_upper(data, md) if bool(need) else np.int32(0)
 
     @jax.custom_batching.custom_vmap
     def call(Ke, md, need):
-        return jax.pure_callback(host, out, Ke, md, need)
+        nnz = backend.nnz_upper
+        data = lax.cond(need, lambda: _upper_data(backend, Ke), lambda: jnp.zeros((nnz,), Ke.dtype))
+        return jax.pure_callback(host, out, data, md, need)
 
     @call.def_vmap
     def _rule(axis_size, in_batched, Ke, md, need):
@@ -279,7 +322,8 @@ def _host_factor_if(backend: HostLinearSolver, Ke, md, need):
 
 _VMAP_MESSAGE = (
     "host linear solvers (Direct, AMG) cannot run under jax.vmap: one host factorisation "
-    "is shared by the whole batch; use linear='cg' (je.CG()) to vmap over scenes"
+    "is shared by the whole batch; use linear='multilevel' (je.Multilevel(), the device "
+    "multigrid) or linear='cg' (je.CG()) to vmap over scenes"
 )
 
 
@@ -387,7 +431,11 @@ class _Host:
 
 @dataclasses.dataclass(frozen=True)
 class Direct(_Host):
-    """Sparse Cholesky on the host (CHOLMOD through cholespy; SciPy SuperLU fallback).
+    """Sparse Cholesky on the host: MKL PARDISO where pypardiso imports, else supernodal
+    CHOLMOD (scikit-sparse), else cholespy / SciPy SuperLU with one warning
+    (:class:`~jaxelastic.solvers.backends.DirectSolver`). The matrix is assembled on the
+    device (upper triangle, int32 map); the symbolic analysis is done once per pattern,
+    each Newton step is one numeric factorisation and one solve.
 
     Attributes:
         backend: the bound :class:`~jaxelastic.solvers.host.HostLinearSolver` (set by
@@ -434,26 +482,192 @@ class AMG(_Host):
         return res.x, res.stats["iterations"], st
 
 
-LinearSolver = CG | Direct | AMG
+_HIERARCHIES: dict = {}  # content key -> Hierarchy, least recently used first
+_HIERARCHY_CAPACITY = 8
+
+
+def _shared_hierarchy(mesh, bc, max_coarse: int, smooth: bool) -> Hierarchy:
+    """The (cached) :func:`~jaxelastic.solvers.multilevel.build_hierarchy` of a mesh and
+    mask: repeated solves of one scene reuse the setup (and the compiled code)."""
+    opts = dict(max_coarse=max_coarse, smooth=smooth)
+    key = content_key(mesh.cells, mesh.points, bc.mask, "multilevel", opts)
+    h = _HIERARCHIES.pop(key, None)
+    if h is None:
+        h = build_hierarchy(mesh.cells, mesh.points, bc.mask, max_coarse=max_coarse, smooth=smooth)
+    _HIERARCHIES[key] = h
+    while len(_HIERARCHIES) > _HIERARCHY_CAPACITY:
+        _HIERARCHIES.pop(next(iter(_HIERARCHIES)))
+    return h
+
+
+@dataclasses.dataclass(frozen=True)
+class Multilevel:
+    """CG preconditioned by aggregation multigrid applied on the device, inside ``jit``.
+
+    The hierarchy (aggregates, rigid-body tentative prolongators, index maps) is built once
+    per (mesh, Dirichlet mask) on the host by :meth:`bind`; every Newton step recomputes the
+    level operators from the element Hessians on the device (exact Galerkin products) and
+    runs :func:`cg` with one V-cycle per iteration (:mod:`~jaxelastic.solvers.multilevel`).
+    No host callback: it works under ``jax.vmap`` (e.g. over material parameters), in
+    float32 and float64, and on sharded inputs. :func:`jaxelastic.solve` passes the
+    hierarchy to its compiled function as an argument (no large XLA constants); inside a
+    user's ``jit``/``vmap``/``grad`` a bound solver's arrays are constants of that trace.
+
+    Attributes:
+        degree: Chebyshev smoothing degree (pre and post).
+        cycle: ``"V"`` or ``"W"``.
+        coarse_scale: factor of the coarse-grid correction (in (0, 2)).
+        smooth: smoothed aggregation (fewer iterations, but its Galerkin product costs
+            ~14x the plain one on CPU) instead of plain aggregation.
+        max_coarse: dofs of the coarsest level (dense Cholesky every Newton step).
+        max_iter: CG iteration cap per linear solve.
+        hierarchy: the bound :class:`~jaxelastic.solvers.multilevel.Hierarchy` (set by
+            :func:`bind_linear`; leave None). Compared by identity.
+    """
+
+    degree: int = 4
+    cycle: str = "V"
+    coarse_scale: float = 1.3
+    smooth: bool = False
+    max_coarse: int = 1500
+    max_iter: int = 2000
+    hierarchy: Hierarchy | None = None
+
+    needs_element_hessians = True
+
+    def __post_init__(self):
+        if int(self.degree) < 1:
+            raise ValueError(f"Multilevel degree must be >= 1, got {self.degree!r}")
+        if self.cycle not in ("V", "W"):
+            raise ValueError(f"Multilevel cycle must be 'V' or 'W', got {self.cycle!r}")
+        if not 0 < float(self.coarse_scale) < 2:
+            raise ValueError(
+                f"Multilevel coarse_scale must be in (0, 2) (else the preconditioner is not "
+                f"positive definite), got {self.coarse_scale!r}"
+            )
+        if int(self.max_coarse) < 1 or int(self.max_iter) < 1:
+            raise ValueError("Multilevel max_coarse and max_iter must be >= 1")
+
+    @property
+    def is_bound(self) -> bool:
+        """Whether the hierarchy is built (:func:`bind_linear`)."""
+        return self.hierarchy is not None
+
+    def bind(self, mesh, bc) -> Self:
+        """This solver with the hierarchy of ``mesh`` and ``bc.mask`` (host, cached)."""
+        return dataclasses.replace(
+            self, hierarchy=_shared_hierarchy(mesh, bc, int(self.max_coarse), bool(self.smooth))
+        )
+
+    def _require(self) -> Hierarchy:
+        if self.hierarchy is None:
+            raise ValueError(
+                "Multilevel() is not bound to a mesh: call je.solvers.bind_linear(solver, "
+                "mesh, bc) outside jit (je.solve does it when the mesh is concrete)"
+            )
+        return self.hierarchy
+
+    def _M(self, system: NewtonSystem, Ke):
+        M = preconditioner(
+            self._require(),
+            Ke,
+            mass_diagonal(system.pot),
+            system.free,
+            degree=int(self.degree),
+            cycle=self.cycle,
+            coarse_scale=float(self.coarse_scale),
+        )
+        free = system.free
+
+        def apply(r):
+            return free * M(r)
+
+        return apply
+
+    def newton_step(self, system: NewtonSystem, rhs, tol) -> Solution:
+        """Multigrid-preconditioned CG to ``‖r‖ ≤ tol``; on negative curvature (or a failed
+        coarsest factorisation) PSD-project the element Hessians
+        (:func:`~jaxelastic.energy.project_psd`) and solve again.
+
+        Both attempts are one ``lax.while_loop`` body (at most two trips), so the cycle is
+        compiled once, not once per branch of a ``cond``."""
+        if system.Ke is None:
+            raise ValueError("Multilevel needs the element Hessians (NewtonSystem.Ke)")
+        Ke = system.Ke
+        exact_is_elementwise = system.pot.stiffness_damping is None
+
+        def attempt(c):
+            k = c[0]
+            K = lax.cond(k == 0, lambda: Ke, lambda: project_psd(Ke))
+            if exact_is_elementwise:  # system.A is the element-Hessian operator of Ke
+                A = system.operator(K)
+            else:
+
+                def A(v):
+                    return lax.cond(k == 0, system.A, system.operator(K), v)
+
+            r = cg(A, rhs, self._M(system, K), tol=tol, max_iter=self.max_iter)
+            bad = (r.status == Status.NEGATIVE_CURVATURE) | ~jnp.all(jnp.isfinite(r.x))
+            its = c[2] + r.stats["iterations"]
+            return (k + 1, r.x, its, r.status, r.stats["residual"], c[5] | bad, bad)
+
+        def again(c):
+            return (c[0] == 0) | ((c[0] == 1) & c[6])
+
+        i32 = jnp.int32
+        zero, no = jnp.asarray(0, i32), jnp.asarray(False)
+        c0 = (zero, jnp.zeros_like(rhs), zero, zero, jnp.zeros((), rhs.dtype), no, no)
+        _, dx, its, st, rn, projected, _ = lax.while_loop(again, attempt, c0)
+        stats = dict(iterations=its, residual=rn, projected=projected)
+        return Solution(x=dx * system.free, status=st, stats=stats)
+
+    def exact(self, system: NewtonSystem, b, rtol, max_iter: int) -> Solution:
+        """Multigrid-preconditioned CG on the exact operator to ``‖r‖ ≤ rtol·‖b‖``
+        (adjoint / tangent solves of implicit differentiation)."""
+        if system.Ke is None:
+            raise ValueError("Multilevel needs the element Hessians (NewtonSystem.Ke)")
+        bn = jnp.sqrt(_dot(b, b))
+        return cg(system.A, b, self._M(system, system.Ke), tol=rtol * bn, max_iter=max_iter)
+
+
+LinearSolver = CG | Direct | AMG | Multilevel
 
 
 def _is_traced(tree) -> bool:
     return any(isinstance(a, Tracer) for a in jax.tree_util.tree_leaves(tree))
 
 
+def _missing_host_package(kind: str) -> str | None:
+    """The package a host back end of ``kind`` (``"direct"``/``"amg"``) needs and cannot
+    import here (None when it can): ``pyamg`` for AMG; for direct, a sparse Cholesky
+    package (SciPy's SuperLU alone is a slow fallback that ``"auto"`` does not pick)."""
+    if kind == "amg":
+        try:
+            import pyamg  # noqa: F401
+        except ImportError:
+            return "pyamg"
+        return None
+    return "pypardiso" if available_direct_backends() == ("splu",) else None
+
+
 def bind_linear(linear: str | LinearSolver | None, mesh, bc) -> LinearSolver:
     """Resolve a linear-solver choice for one scene (outside jit).
 
     Args:
-        linear: ``"auto"`` (:class:`Direct` up to :data:`AUTO_DIRECT_MAX_DOFS` dofs,
-            :class:`AMG` above; :class:`CG` when the mesh is traced, e.g. passed as a jit
-            argument), ``"cg"``, ``"direct"``, ``"amg"``, None (= ``"auto"``) or a solver
-            object (host ones are bound to ``mesh`` and ``bc.mask`` unless already bound).
+        linear: ``"auto"`` (:class:`Direct` up to :data:`AUTO_DIRECT_MAX_DOFS` dofs
+            (:data:`AUTO_DIRECT_MAX_DOFS_P2` on P2 node sets), :class:`AMG` above;
+            :class:`CG` when the mesh is traced, e.g. passed as a jit argument;
+            :class:`Multilevel`, with a warning, when the host package that
+            choice needs, pyamg or a sparse Cholesky, is not installed), ``"cg"``,
+            ``"direct"``, ``"amg"``, ``"multilevel"``, None
+            (= ``"auto"``) or a solver object (host ones and :class:`Multilevel` are bound
+            to ``mesh`` and ``bc.mask`` unless already bound).
         mesh: the :class:`~jaxelastic.mesh.Mesh`; bc: the
             :class:`~jaxelastic.loads.Dirichlet` data (its mask fixes the pattern).
 
     Raises:
-        ValueError: unknown name, or a host solver on a traced mesh.
+        ValueError: unknown name, or a host solver / an unbound :class:`Multilevel` on a
+            traced mesh.
     """
     if linear is None:
         linear = "auto"
@@ -463,12 +677,39 @@ def bind_linear(linear: str | LinearSolver | None, mesh, bc) -> LinearSolver:
         if linear == "auto":
             if _is_traced((mesh.cells, mesh.points, bc.mask)):
                 return CG()
-            small = mesh.n_dofs <= AUTO_DIRECT_MAX_DOFS.get(mesh.dim, 10_000)
+            limits = AUTO_DIRECT_MAX_DOFS_P2 if mesh.element in _P2_NODES else AUTO_DIRECT_MAX_DOFS
+            small = mesh.n_dofs <= limits.get(mesh.dim, 10_000)
             linear = "direct" if small else "amg"
-        by_name: dict[str, type[LinearSolver]] = {"cg": CG, "direct": Direct, "amg": AMG}
+            missing = _missing_host_package(linear)
+            if missing:  # a lean install (e.g. a GPU image): the device solver instead
+                warnings.warn(
+                    f"jaxelastic: linear='auto' would use the host {linear!r} solver but "
+                    f"{missing} is not installed; using the device solver "
+                    f"linear='multilevel' instead (pip install {missing} for the host one)",
+                    RuntimeWarning,
+                    stacklevel=1,  # one location: the default filter shows it once
+                )
+                linear = "multilevel"
+        by_name: dict[str, type[LinearSolver]] = {
+            "cg": CG,
+            "direct": Direct,
+            "amg": AMG,
+            "multilevel": Multilevel,
+        }
         linear = by_name[linear]()
     if isinstance(linear, CG):
         return linear
+    if isinstance(linear, Multilevel):
+        if linear.hierarchy is not None:
+            return linear
+        if _is_traced((mesh.cells, mesh.points, bc.mask)):
+            raise ValueError(
+                "Multilevel() builds its hierarchy from the mesh and the Dirichlet mask on "
+                "the host, but they are traced here (passed as jit arguments): bind it "
+                "first, outside jit, with je.solvers.bind_linear(solver, mesh, bc), or use "
+                "linear='cg'"
+            )
+        return linear.bind(mesh, bc)
     if isinstance(linear, _Host):
         if linear.backend is not None:
             return linear
@@ -481,6 +722,7 @@ def bind_linear(linear: str | LinearSolver | None, mesh, bc) -> LinearSolver:
             )
         return linear.bind(mesh, bc)
     raise TypeError(
-        f"linear solver must be a name {LINEAR_SOLVERS} or je.CG/je.Direct/je.AMG, got "
+        f"linear solver must be a name {LINEAR_SOLVERS} or je.CG/je.Direct/je.AMG/"
+        f"je.Multilevel, got "
         f"{type(linear).__name__}"
     )

@@ -12,13 +12,17 @@ Each iteration:
    (``hessian="projected"``) for indefinite configurations.
 3. Backtracking line search treating non-finite Π as +∞ (an inverting step of a model that
    is undefined at J ≤ 0 is cut back until no element inverts): Armijo on Π far from the
-   solution, decrease of the residual near it, where Π's round-off (~1e-16·Σ_c|x_cᵀK_c x_c|,
-   far above 1e-16·|Π| near rest because ψ cancels large terms) exceeds the predicted
-   decrease; steps that move Dirichlet dofs only need a finite Π.
-4. Convergence: ``‖g_free‖ ≤ max(atol, rtol·‖g‖_ref, floor)`` with all Dirichlet dofs in
-   place, where ``floor`` is the residual's round-off floor (:func:`_residual_floor`:
+   solution, decrease of the residual near it, where Π's round-off (~eps·Σ_c|x_cᵀK_c x_c|,
+   far above eps·|Π| near rest because ψ cancels large terms) exceeds the predicted
+   decrease (below ``max(1e-10, 1e4·eps)`` of that scale: :data:`NEAR_EPS`), or, there,
+   a residual that stays below its round-off floor; steps that move Dirichlet dofs only
+   need a finite Π.
+4. Convergence: ``‖g_free‖ ≤ max(atol, rtol·‖g‖_ref)`` with all Dirichlet dofs in place,
+   or the residual's round-off floor reached: ``‖g_free‖ ≤ floor`` (:func:`_residual_floor`:
    ``2·eps`` times the root-sum-square of the terms of the forces; reported as
-   ``stats["residual_floor"]``), or a full step below ``xtol`` times the body's size;
+   ``stats["residual_floor"]``) once a full step reduces the residual by less than half
+   (:data:`STALL`; at once for a quadratic Π), or a full step below ``xtol`` times the
+   body's size;
    where ``‖g‖_ref`` is the largest free residual seen, ‖f_ext‖, or the largest
    right-hand side ``‖g_f + K_fD Δ_D‖`` (the force induced by a Dirichlet motion).
 
@@ -29,6 +33,7 @@ it runs.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import jax
@@ -43,7 +48,7 @@ from ..potential import Potential
 from .linear import NewtonSystem
 from .results import RUNNING, Solution, Status
 
-__all__ = ["Newton", "HESSIANS"]
+__all__ = ["Newton", "HESSIANS", "host_minimize"]
 
 HESSIANS = ("element", "hvp", "projected")
 
@@ -136,12 +141,12 @@ def _energy_scale(pot: Potential, x, Ke):
     return xKx
 
 
-def _system(s: Newton, pot: Potential, x, free) -> NewtonSystem:
-    """The Dirichlet-masked Newton operator at x (and the element Hessians it needs)."""
+def _system(s: Newton, pot: Potential, x, free, Ke=None) -> NewtonSystem:
+    """The Dirichlet-masked Newton operator at x (and the element Hessians it needs;
+    ``Ke``: those already computed at x)."""
     fm = free.astype(x.dtype)
     need_Ke = s.hessian != "hvp" or s.linear.needs_element_hessians
-    Ke = None
-    if need_Ke:
+    if Ke is None and need_Ke:
         Ke = pot_mod.elastic_element_hessians(pot, x, project=s.hessian == "projected")
 
     def masked(H):
@@ -167,8 +172,19 @@ def _system(s: Newton, pot: Potential, x, free) -> NewtonSystem:
     return NewtonSystem(pot=pot, x=x, free=free, Ke=Ke, H=H, A=masked(H), operator=operator)
 
 
-def _direction(s: Newton, system: NewtonSystem, g, dD, ref):
-    """Newton direction (free part + Dirichlet motion) and the linear solve's result."""
+def is_quadratic(pot: Potential) -> bool:
+    """Whether Π is quadratic in x, so one exact Newton step solves it (static).
+
+    True when ψ is marked ``psi.is_quadratic = True`` (the built-in ``linear`` material;
+    mark your own quadratic ψ likewise) and the kinematics are linear in x (not F-bar,
+    whose F̄ = (J̄/J)^{1/d} F is nonlinear). Inertia, damping and external forces keep Π
+    quadratic.
+    """
+    return getattr(pot.psi, "is_quadratic", False) is True and pot.mesh.formulation != "fbar"
+
+
+def _newton_rhs(s: Newton, system: NewtonSystem, g, dD, ref):
+    """``(rhs, tol, ‖rhs‖)`` of the Newton step's linear solve ``K_ff Δ_f = rhs``."""
     fm = system.free.astype(g.dtype)
     tiny = jnp.finfo(g.dtype).tiny
     gf = g * fm
@@ -178,18 +194,37 @@ def _direction(s: Newton, system: NewtonSystem, g, dD, ref):
     rhs = -gf - KdD
     bn = _norm(rhs)
     scale = jnp.maximum(jnp.maximum(ref, rn), bn)
+    # inexact Newton (forcing η·‖rhs‖) only where the model is nonlinear: on a quadratic
+    # potential one accurate solve is the answer, and a loose one only costs Newton steps
     eta = jnp.clip(rn / jnp.maximum(scale, tiny), 1e-6, 0.1)
-    tol = jnp.maximum(eta * bn, 0.1 * s.rtol * scale)
-    res = s.linear.newton_step(system, rhs, tol)
+    tight = 0.1 * s.rtol * scale
+    tol = tight if is_quadratic(system.pot) else jnp.maximum(eta * bn, tight)
+    return rhs, tol, bn
+
+
+def _descent(system: NewtonSystem, g, dD, res: Solution):
+    """Newton direction (free part + Dirichlet motion) from the linear solve's ``res``."""
+    fm = system.free.astype(g.dtype)
+    gf = g * fm
     d_free = res.x * fm
     # not a descent direction (only possible without projection): steepest descent
-    bad = (dn == 0) & ~(jnp.sum(g * d_free) < 0)
+    bad = (_norm(dD) == 0) & ~(jnp.sum(g * d_free) < 0)
     d_free = jnp.where(bad, -gf, d_free)
-    return d_free + dD, res, bn
+    return d_free + dD
 
 
-def _line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near):
-    """Backtracking from α = 1: ``(α, x_t, Π_t, g_t, accepted, halvings)``."""
+def _linear_system(s: Newton, pot, bc: Dirichlet, c: dict, Ke=None):
+    """``(system, Δ_D, rhs, tol, ‖rhs‖)`` of the Newton step from the carry ``c``."""
+    x = c["x"]
+    system = _system(s, pot, x, ~bc.mask, Ke)
+    dD = jnp.where(bc.mask, bc.values - x, 0.0)
+    rhs, tol, bn = _newton_rhs(s, system, c["g"], dD, c["ref"])
+    return system, dD, rhs, tol, bn
+
+
+def _line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near, floor):
+    """Backtracking from α = 1 (with contact: from the CCD bound ``min(1, 0.8·τ*)``,
+    :meth:`~jaxelastic.contact.Contact.ccd_step`): ``(α, x_t, Π_t, g_t, accepted, halvings)``."""
     mask, xD = bc.mask, bc.values
     fm = (~mask).astype(x.dtype)
     rn = _norm(g * fm)
@@ -201,7 +236,9 @@ def _line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near):
         xt = jnp.where(mask & (alpha == 1.0), xD, xt)
         et, gt = _value_and_grad(s, pot, xt)
         armijo = et <= e0 + s.armijo * alpha * slope
-        residual_ok = near & (dn == 0) & (_norm(gt * fm) < rn)
+        # near the solution Π's round-off hides the decrease; at the residual's round-off
+        # floor its norm is noise, so a trial that stays below the floor is accepted too
+        residual_ok = near & (dn == 0) & (_norm(gt * fm) < jnp.maximum(rn, floor))
         accept = jnp.isfinite(et) & ((dn > 0) | armijo | residual_ok)
         return xt, et, gt, accept
 
@@ -212,21 +249,35 @@ def _line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near):
         alpha = 0.5 * c[0]
         return (alpha, *trial(alpha), c[5] + 1)
 
-    one = jnp.asarray(1.0, x.dtype)
-    return lax.while_loop(cond, body, (one, *trial(one), jnp.asarray(0, jnp.int32)))
+    # the first pass of the body tries α = 1 (halvings 0): Π and its gradient are traced
+    # and compiled once, not also for a trial before the loop
+    two, inf = jnp.asarray(2.0, x.dtype), jnp.asarray(jnp.inf, x.dtype)
+    if pot.contact is not None:  # every trial stays intersection-free
+        two = two * jnp.minimum(1.0, pot.contact.ccd_step(x, step)).astype(x.dtype)
+    start = (two, x, inf, g, jnp.asarray(False), jnp.asarray(-1, jnp.int32))
+    return lax.while_loop(cond, body, start)
 
 
 def _iteration(s: Newton, pot, bc: Dirichlet, c: dict, length) -> dict:
     """One Newton iteration on the loop carry ``c``."""
+    system, dD, rhs, tol, bn = _linear_system(s, pot, bc, c)
+    lin = s.linear.newton_step(system, rhs, tol)
+    return _iteration_end(s, pot, bc, c, length, system, dD, bn, lin)
+
+
+def _iteration_end(s: Newton, pot, bc: Dirichlet, c: dict, length, system, dD, bn, lin) -> dict:
+    """The rest of a Newton iteration once the linear solve ``lin`` is done: direction,
+    line search, new carry and status."""
     x, g, k = c["x"], c["g"], c["k"]
     mask, xD = bc.mask, bc.values
     fm = (~mask).astype(x.dtype)
-    system = _system(s, pot, x, ~mask)
-    dD = jnp.where(mask, xD - x, 0.0)
-    step, lin, bn = _direction(s, system, g, dD, c["ref"])
+    step = _descent(system, g, dD, lin)
     escale = jnp.maximum(jnp.abs(c["energy"]), _energy_scale(pot, x, system.Ke))
-    near = jnp.abs(jnp.sum(g * step)) <= 1e-10 * jnp.maximum(escale, jnp.finfo(x.dtype).tiny)
-    alpha, xt, et, gt, acc, cuts = _line_search(s, pot, bc, x, g, c["energy"], step, near)
+    near = jnp.abs(jnp.sum(g * step)) <= _near_tol(x.dtype) * jnp.maximum(
+        escale, jnp.finfo(x.dtype).tiny
+    )
+    floor = _residual_floor(pot, system, x, fm)
+    alpha, xt, et, gt, acc, cuts = _line_search(s, pot, bc, x, g, c["energy"], step, near, floor)
     x_new = jnp.where(acc, xt, x)
     g_new = jnp.where(acc, gt, g)
     rn = _norm(g_new * fm)
@@ -234,8 +285,10 @@ def _iteration(s: Newton, pot, bc: Dirichlet, c: dict, length) -> dict:
     # bn = ‖g_f + K_fD Δ_D‖ is the force a Dirichlet motion induces: the reference of a
     # purely displacement-driven solve (whose free residual is 0 at the rest shape)
     ref = jnp.maximum(jnp.maximum(c["ref"], rn), bn)
-    floor = _residual_floor(pot, system, x_new, fm)
-    st = _status(s, rn, dn, ref, k + 1, floor)
+    # the floor only counts once a full step no longer reduces the residual (or the
+    # potential is quadratic, where one exact step is the answer)
+    stalled = ((alpha == 1.0) & (rn >= STALL * c["hist"][k])) | is_quadratic(pot)
+    st = _status(s, rn, dn, ref, k + 1, jnp.where(stalled, floor, 0.0))
     tiny_step = acc & (alpha == 1.0) & (dn == 0) & (jnp.max(jnp.abs(step)) <= s.xtol * length)
     st = jnp.where((st == RUNNING) & tiny_step & jnp.isfinite(rn), Status.SUCCESS, st)
     st = jnp.where(acc, st, Status.LINE_SEARCH_FAILED)
@@ -258,6 +311,25 @@ def _iteration(s: Newton, pot, bc: Dirichlet, c: dict, length) -> dict:
     )
 
 
+STALL = 0.5
+"""The residual's round-off floor counts as reached once a full Newton step reduces the
+residual by less than this factor (``‖g_{k+1}‖ ≥ STALL·‖g_k‖``): above the floor Newton
+still converges and one more step improves the answer (measured on the default scene in
+float32: stopping at the floor without this test let the trajectory drift 8e-4 from
+float64; with it 8e-7)."""
+
+NEAR_EPS = 1e4
+"""The line search switches from Armijo on Π to a decrease of the residual when the
+predicted decrease ``|gᵀd|`` is below ``max(1e-10, NEAR_EPS·eps)`` times Π's round-off
+scale (:func:`_energy_scale`): 1e-10 in float64 (as before), 1.2e-3 in float32, where
+Π's round-off (≈ 1e-7 of that scale) makes Armijo a coin flip well before 1e-10."""
+
+
+def _near_tol(dtype) -> float:
+    """The relative predicted decrease below which Π is too noisy for Armijo."""
+    return max(1e-10, NEAR_EPS * float(jnp.finfo(dtype).eps))
+
+
 FLOOR_FACTOR = 2.0
 """The residual's round-off floor is taken as ``FLOOR_FACTOR · eps · ‖r̄‖`` (see
 :func:`_residual_floor`)."""
@@ -266,16 +338,22 @@ FLOOR_FACTOR = 2.0
 def _residual_floor(pot: Potential, system: NewtonSystem, x, fm):
     """Round-off floor of the free force residual at x [force].
 
-    Every nodal force is a sum of terms computed in floating point, and F is built from
-    *absolute* positions, so the residual cannot be resolved below about ``eps`` times the
-    root-sum-square of the terms that enter it: ``r̄² = Σ_a [Σ_c Σ_j (K_c,aj x_j)² +
+    The positions are stored as absolute coordinates, each rounded to about ``eps·|x_j|``,
+    and every nodal force is a sum of terms computed in floating point, so the residual
+    cannot be resolved below about ``eps`` times the root-sum-square of the terms that
+    enter it: ``r̄² = Σ_a [Σ_c Σ_j (K_c,aj x_j)² +
     f_ext,a² + (w m_a)² (x_a² + x̃_a²)]`` over free dofs (mass-damping likewise), with the
     element Hessians ``K_c`` of this Newton step (no stiffness term in matrix-free
     ``hessian="hvp"`` + ``CG(preconditioner="none")``, which builds none). Measured on a
     steel block (E = 210 GPa, linear, one exact Newton step): the residual stagnates at
     5.5e-5 N, this estimate (factor 1) is 1.6e-4 N; the worst-case absolute sum would be
-    1.0e-3 N. Newton stops with SUCCESS once the residual is below ``FLOOR_FACTOR`` times
-    this (``stats["residual_floor"]``): below it no Newton step makes measurable progress.
+    1.0e-3 N. In float32, at the float64 solution rounded to float32 (README example):
+    residual 1.44 N = rounding of the positions alone 1.01 N (F from displacements does
+    not remove that part) ⊕ float32 arithmetic 0.89 N; Newton without a floor stagnates at
+    1.26–1.64 N; this estimate (factor 1) is 1.81 N (twist n = 10: 3.25e-6 vs 5.66e-6;
+    default scene time step: 1.2 vs 2.3). Newton stops with SUCCESS once the residual is
+    below ``FLOOR_FACTOR`` times this (``stats["residual_floor"]``) and a full step has
+    stalled (:data:`STALL`): below it no Newton step makes measurable progress.
     """
     eps = jnp.finfo(x.dtype).eps
     sq = jnp.zeros_like(x)
@@ -329,14 +407,24 @@ def _initial_carry(s: Newton, pot, bc: Dirichlet, x0) -> dict:
     )
 
 
-def _run(s: Newton, pot: Potential, bc: Dirichlet, x0) -> Solution:
+def _length(pot: Potential):
+    """Diagonal of the rest bounding box [length] (the scale of ``xtol``)."""
     X = pot.mesh.points
-    length = jnp.sqrt(jnp.sum((jnp.max(X, axis=0) - jnp.min(X, axis=0)) ** 2))
+    return jnp.sqrt(jnp.sum((jnp.max(X, axis=0) - jnp.min(X, axis=0)) ** 2))
+
+
+def _run(s: Newton, pot: Potential, bc: Dirichlet, x0) -> Solution:
+    length = _length(pot)
     c = lax.while_loop(
         lambda c: c["status"] == RUNNING,
         lambda c: _iteration(s, pot, bc, c, length),
         _initial_carry(s, pot, bc, x0),
     )
+    return _solution(c)
+
+
+def _solution(c: dict) -> Solution:
+    """The :class:`Solution` of a finished loop carry."""
     stats = dict(
         steps=c["k"],
         linear_iterations=jnp.sum(c["lin_hist"]),
@@ -349,6 +437,62 @@ def _run(s: Newton, pot: Potential, bc: Dirichlet, x0) -> Solution:
         negative_curvature=c["neg"],
         projected=c["proj"],
         residual_floor=c["floor"],
-        wall_time=jnp.asarray(jnp.nan, x0.dtype),
+        wall_time=jnp.asarray(jnp.nan, c["x"].dtype),
     )
     return Solution(x=c["x"], status=c["status"], stats=stats)
+
+
+# ----------------------------------------------------------------------------------------
+# the same loop driven from the host (host linear solvers outside jit)
+# ----------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnames="s")
+def _host_start(s: Newton, pot: Potential, bc: Dirichlet, x0):
+    return _initial_carry(s, pot, bc, x0), _length(pot)
+
+
+@functools.partial(jax.jit, static_argnames="s")
+def _host_system(s: Newton, pot: Potential, bc: Dirichlet, c: dict):
+    system, _, rhs, tol, bn = _linear_system(s, pot, bc, c)
+    return system.Ke, rhs, tol, bn
+
+
+@functools.partial(jax.jit, static_argnames="s")
+def _host_linear(s: Newton, pot: Potential, bc: Dirichlet, x, Ke, rhs, tol) -> Solution:
+    return s.linear.newton_step(_system(s, pot, x, ~bc.mask, Ke), rhs, tol)
+
+
+@functools.partial(jax.jit, static_argnames="s")
+def _host_update(s: Newton, pot: Potential, bc: Dirichlet, c: dict, length, Ke, bn, lin):
+    x = c["x"]
+    system = _system(s, pot, x, ~bc.mask, Ke)  # no new element Hessians, nor rhs
+    dD = jnp.where(bc.mask, bc.values - x, 0.0)
+    return _iteration_end(s, pot, bc, c, length, system, dD, bn, lin)
+
+
+_host_solution = jax.jit(_solution)
+
+
+def host_minimize(s: Newton, pot: Potential, bc: Dirichlet, x0) -> Solution:
+    """:meth:`Newton.minimize` with the Newton loop in Python (same iterations, same
+    result), for concrete inputs outside jit.
+
+    Each iteration runs three compiled pieces: the element Hessians and right-hand side,
+    the linear solve (``s.linear.newton_step``: for the host back ends the only piece with
+    a host callback) and the line search + status update. JAX never writes an executable
+    with a host callback to the persistent compilation cache, so with the loop under
+    ``lax.while_loop`` (:meth:`Newton.minimize`) a solve with ``Direct``/``AMG`` was
+    recompiled by every process; here only the small linear-solve piece is. Used by
+    :func:`jaxelastic.solve` for host linear solvers outside jit.
+
+    Args: as :meth:`Newton.minimize` (``x0`` ``(n_nodes, dim)``); not traceable.
+    """
+    if isinstance(s.linear, str) or not s.linear.is_bound:
+        raise ValueError("host_minimize needs a bound linear solver (use je.solve)")
+    c, length = _host_start(s, pot, bc, x0)
+    while int(c["status"]) == RUNNING:
+        Ke, rhs, tol, bn = _host_system(s, pot, bc, c)
+        lin = _host_linear(s, pot, bc, c["x"], Ke, rhs, tol)
+        c = _host_update(s, pot, bc, c, length, Ke, bn, lin)
+    return _host_solution(c)

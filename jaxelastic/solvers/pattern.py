@@ -1,12 +1,18 @@
 """Host-side sparsity pattern of the global Hessian and the rigid-body near-null space.
 
 The global Hessian's sparsity depends only on the connectivity, so it is analysed once:
-:meth:`SparsityPattern.build` precomputes the CSR structure and, for every entry of every
-element Hessian, the CSR data slot it adds into. Assembling a new Hessian (every Newton
-step) is then one weighted ``np.bincount`` over those slots, with no sorting and no
-duplicate summation. Dirichlet dofs are eliminated *keeping the pattern* (their rows and
-columns are zeroed, their diagonal set to 1), so the matrix stays symmetric and a
-factorisation or AMG hierarchy can be reused across Newton steps.
+:meth:`SparsityPattern.build` precomputes the CSR structure of the full matrix and of its
+upper triangle, and an **int32** map from every upper-triangular entry of every element
+Hessian to the upper-triangle CSR slot it adds into. Assembling a new Hessian (every
+Newton step) is then one segment sum over that map — done on the device in XLA by the
+host linear solvers (:mod:`jaxelastic.solvers.linear`), so only the ``(nnz_upper,)`` data
+vector reaches the host — with the symmetrisation folded in: entry ``(p, q)``, ``p ≤ q``,
+of the element-local upper triangle carries ``½(Ke[p, q] + Ke[q, p])``.
+
+Dirichlet dofs are eliminated *keeping the pattern* (their rows and columns are zeroed,
+their diagonal set to 1), so the matrix stays symmetric and a factorisation's symbolic
+analysis or an AMG hierarchy can be reused across Newton steps. The full CSR matrix
+(AMG, SuperLU, cholespy) is a gather of the upper data (``full_from_upper``).
 
 Dof ordering is node-major everywhere: dof ``a*dim + i`` is component ``i`` of node ``a``.
 """
@@ -19,7 +25,16 @@ from typing import NamedTuple
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["SparsityPattern", "rigid_body_modes"]
+__all__ = ["SparsityPattern", "rigid_body_modes", "local_upper"]
+
+_INT32_MAX = np.iinfo(np.int32).max
+_CHUNK = 1 << 20  # element entries per vectorised chunk of the map computation
+
+
+def local_upper(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices ``(m(m+1)/2,)`` of the upper triangle of an ``(m, m)`` element
+    Hessian, row-major: the order of :attr:`SparsityPattern.element_map` per cell."""
+    return np.triu_indices(m)
 
 
 # ----------------------------------------------------------------------------------------
@@ -29,34 +44,43 @@ __all__ = ["SparsityPattern", "rigid_body_modes"]
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SparsityPattern:
-    """CSR structure of the global Hessian and the element→CSR scatter map.
+    """CSR structure of the global Hessian (full and upper triangle) and the int32
+    element→CSR map.
 
     Built once per (mesh, Dirichlet mask) by :meth:`build`. All dofs are kept (fixed ones
-    get an identity row/column after elimination), so ``n_dofs = n_nodes * dim``.
+    get an identity row/column after elimination), so ``n_dofs = n_nodes * dim``. Every
+    diagonal entry is in the pattern (PARDISO and CHOLMOD need it; an unused node gets an
+    identity row). Index arrays are int32 (the CSR limit is checked).
 
     Attributes:
         n_nodes, dim: mesh size and spatial dimension.
-        indptr: ``(n_dofs + 1,)`` int32 CSR row pointers.
-        indices: ``(nnz,)`` int32 CSR column indices, sorted within each row.
-        scatter: ``(n_cells * (k*dim)**2,)`` intp; entry ``Ke.reshape(-1)[e]`` of the
-            element Hessians ``Ke`` ``(n_cells, k*dim, k*dim)`` adds into ``data[scatter[e]]``.
+        indptr: ``(n_dofs + 1,)`` int32 row pointers of the full matrix.
+        indices: ``(nnz,)`` int32 column indices, sorted within each row.
+        upper_indptr, upper_indices: ``(n_dofs + 1,)``, ``(nnz_upper,)`` int32 CSR of the
+            upper triangle (diagonal first in each row, columns sorted).
+        element_map: ``(n_cells * m(m+1)/2,)`` int32 with ``m = k*dim``: the upper-triangle
+            slot of entry ``(p, q)``, ``p ≤ q`` (order :func:`local_upper`), of every cell's
+            element Hessian; ``upper_data = Σ ½(Ke + Keᵀ)[c, p, q]`` over the entries mapped
+            to a slot.
+        full_from_upper: ``(nnz,)`` int32; full CSR data ``= upper_data[full_from_upper]``.
         fixed: ``(n_dofs,)`` bool Dirichlet mask.
-        transpose: ``(nnz,)`` intp; ``data[transpose]`` is the data of Kᵀ (same pattern).
-        zeroed: CSR data slots in a fixed row or column (diagonals included).
-        fixed_diag: CSR data slots of the diagonals of fixed dofs.
-        diag_slots: ``(n_dofs,)`` intp CSR data slot of each diagonal entry ``(i, i)``.
+        zeroed: int32 upper slots in a fixed row or column (diagonals included).
+        fixed_diag: int32 upper slots of the diagonals of fixed dofs.
+        diag_slots: ``(n_dofs,)`` int32 upper slot of each diagonal entry ``(i, i)``.
         node_indptr, node_indices: the node-level (block) pattern; with ``bsr_perm`` it
-            gives the same matrix as a BSR matrix with ``(dim, dim)`` blocks.
-        bsr_perm: ``(nnz,)`` intp; ``data[bsr_perm].reshape(-1, dim, dim)`` is BSR data.
+            gives the full matrix as a BSR matrix with ``(dim, dim)`` blocks.
+        bsr_perm: ``(nnz,)`` int32; ``data[bsr_perm].reshape(-1, dim, dim)`` is BSR data.
     """
 
     n_nodes: int
     dim: int
     indptr: np.ndarray
     indices: np.ndarray
-    scatter: np.ndarray
+    upper_indptr: np.ndarray
+    upper_indices: np.ndarray
+    element_map: np.ndarray
+    full_from_upper: np.ndarray
     fixed: np.ndarray
-    transpose: np.ndarray
     zeroed: np.ndarray
     fixed_diag: np.ndarray
     diag_slots: np.ndarray
@@ -70,11 +94,26 @@ class SparsityPattern:
 
     @property
     def nnz(self) -> int:
+        """Stored entries of the full matrix."""
         return int(self.indices.size)
+
+    @property
+    def nnz_upper(self) -> int:
+        """Stored entries of the upper triangle (diagonal included)."""
+        return int(self.upper_indices.size)
 
     @property
     def shape(self) -> tuple[int, int]:
         return (self.n_dofs, self.n_dofs)
+
+    @property
+    def nbytes(self) -> int:
+        """Host memory of the index arrays [bytes]."""
+        return sum(
+            int(getattr(self, f.name).nbytes)
+            for f in dataclasses.fields(self)
+            if isinstance(getattr(self, f.name), np.ndarray)
+        )
 
     @classmethod
     def build(
@@ -88,62 +127,68 @@ class SparsityPattern:
             dim: spatial dimension (dofs per node).
             fixed: ``(n_nodes*dim,)`` bool Dirichlet mask (node-major), or ``None``.
 
-        Cost: one stable argsort of the ``n_cells*k²`` node pairs plus a few linear passes
-        (about 4.5 s for 585k tets / 316k dofs on our 2-core machine, most of it first
-        touching the 84M-entry ``scatter``); memory is dominated by ``scatter`` (8 bytes
-        per element-Hessian entry, like the Hessians themselves).
+        Cost: one stable argsort of the ``n_cells*k²`` node pairs plus linear passes over
+        the ``n_cells*m(m+1)/2`` element entries, done in chunks so the transient memory
+        stays near the size of the int32 map itself (4 bytes per element-Hessian entry of
+        the upper triangle: 46 MB at 146k tets, where the old int64 full map was 161 MB).
         """
         cells, n, d, fixed = _check_inputs(cells, n_nodes, dim, fixed)
         blocks = _node_blocks(cells, n)
-        scatter = _scatter_map(cells, blocks, d)
-        indptr = _dof_row_pointers(blocks.deg, d)
-        bsr_perm, indices, transpose = _block_layout(blocks, d, int(indptr[-1]))
-        zeroed, fixed_diag, diag_slots = _dirichlet_slots(blocks, bsr_perm, fixed, d)
+        indptr = _row_pointers(np.repeat(d * blocks.deg, d))
+        bsr_perm, indices = _block_layout(blocks, d, int(indptr[-1]))
+        up = _upper(blocks, d)
+        full_from_upper = np.empty(indices.size, dtype=np.int32)
+        full_from_upper[bsr_perm.reshape(-1)] = up.table.reshape(-1)
+        element_map = _element_map(cells, blocks, up, d)
+        zeroed, fixed_diag = _dirichlet_slots(up, fixed, d)
         return cls(
             n_nodes=n,
             dim=d,
             indptr=indptr.astype(np.int32),
             indices=indices,
-            scatter=scatter,
+            upper_indptr=up.indptr.astype(np.int32),
+            upper_indices=up.indices,
+            element_map=element_map,
+            full_from_upper=full_from_upper,
             fixed=fixed,
-            transpose=transpose,
             zeroed=zeroed,
             fixed_diag=fixed_diag,
-            diag_slots=diag_slots,
+            diag_slots=up.indptr[:-1].astype(np.int32),
             node_indptr=blocks.indptr.astype(np.int32),
             node_indices=blocks.col.astype(np.int32),
-            bsr_perm=bsr_perm.reshape(-1),
+            bsr_perm=bsr_perm.reshape(-1).astype(np.int32),
         )
 
     # -- assembly --------------------------------------------------------------------
 
-    def assemble_data(
-        self, Ke, *, eliminate: bool = True, symmetrize: bool = True, diag=None
-    ) -> np.ndarray:
-        """CSR data ``(nnz,)`` of ``Σ_c Ke_c`` for element Hessians ``(n_cells, k*d, k*d)``.
+    def upper_data(self, Ke) -> np.ndarray:
+        """Upper-triangle data ``(nnz_upper,)`` of ``Σ_c ½(Ke_c + Ke_cᵀ)`` on the host.
+
+        ``Ke``: ``(n_cells, m, m)`` element Hessians, ``m = k*dim``. The library's solvers do
+        this sum on the device (:mod:`jaxelastic.solvers.linear`); this NumPy version is for
+        host callers (tests, benchmarks, :meth:`assemble`).
+        """
+        Ke = np.asarray(Ke, dtype=np.float64)
+        m = Ke.shape[-1]
+        iu, ju = local_upper(m)
+        if Ke.ndim != 3 or Ke.shape[1] != m or Ke.shape[0] * iu.size != self.element_map.size:
+            raise ValueError(
+                f"element Hessians have shape {Ke.shape}, the pattern expects "
+                f"({self.element_map.size * 2 // (m * (m + 1)) if m else 0}, k*dim, k*dim) "
+                "for its mesh"
+            )
+        w = 0.5 * (Ke[:, iu, ju] + Ke[:, ju, iu])
+        return np.bincount(self.element_map, weights=w.reshape(-1), minlength=self.nnz_upper)
+
+    def finish(self, data, *, diag=None, eliminate: bool = True) -> np.ndarray:
+        """Add a diagonal and eliminate the Dirichlet dofs, in place on upper data.
 
         Args:
-            eliminate: zero fixed rows/columns and put 1 on their diagonals.
-            symmetrize: return ``(K + Kᵀ)/2`` (autodiff Hessians are symmetric only to
-                round-off; Cholesky reads one triangle).
+            data: ``(nnz_upper,)`` float64 upper data (modified and returned).
             diag: optional ``(n_dofs,)`` added to the diagonal before elimination (e.g. a
-                lumped mass / dt² term); keeps the pattern, unlike ``K + sp.diags(m)``,
-                which drops the explicit zeros of eliminated entries.
+                lumped mass / dt² term); keeps the pattern.
+            eliminate: zero fixed rows/columns and put 1 on their diagonals.
         """
-        w = np.asarray(Ke, dtype=np.float64).reshape(-1)
-        if w.size != self.scatter.size:
-            raise ValueError(
-                f"element Hessians have {w.size} entries, the pattern expects "
-                f"{self.scatter.size} (n_cells*(k*dim)**2)"
-            )
-        # bincount with intp indices was the fastest of the variants we measured (585k tets,
-        # 84M entries -> 13.7M slots: bincount 0.15 s; int32 indices 0.68 s (converted on
-        # every call); CSR 0/1-matrix product 0.37 s; sort-once + add.reduceat 0.74 s;
-        # block-wise sparse product 1.1 s; scipy COO->CSR 6.0 s)
-        data = np.bincount(self.scatter, weights=w, minlength=self.nnz)
-        if symmetrize:
-            data += data[self.transpose]
-            data *= 0.5
         if diag is not None:
             data[self.diag_slots] += np.asarray(diag, dtype=np.float64).reshape(-1)
         if eliminate:
@@ -151,27 +196,40 @@ class SparsityPattern:
             data[self.fixed_diag] = 1.0
         return data
 
+    def full_data(self, upper) -> np.ndarray:
+        """Full CSR data ``(nnz,)`` from upper data ``(nnz_upper,)`` (one gather)."""
+        return np.asarray(upper)[self.full_from_upper]
+
+    def assemble_data(self, Ke, *, eliminate: bool = True, diag=None) -> np.ndarray:
+        """Full CSR data ``(nnz,)`` of the symmetrised ``Σ_c Ke_c`` (``(n_cells, m, m)``),
+        with an optional ``(n_dofs,)`` diagonal and Dirichlet elimination."""
+        return self.full_data(self.finish(self.upper_data(Ke), diag=diag, eliminate=eliminate))
+
     def matrix(self, data: np.ndarray) -> sp.csr_matrix:
-        """Wrap CSR data ``(nnz,)`` in a ``scipy.sparse.csr_matrix`` (no copy)."""
+        """Wrap full CSR data ``(nnz,)`` in a ``scipy.sparse.csr_matrix`` (no copy)."""
         return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape, copy=False)
 
-    def assemble(self, Ke, *, symmetrize: bool = True, diag=None) -> sp.csr_matrix:
+    def upper_matrix(self, upper: np.ndarray) -> sp.csr_matrix:
+        """Wrap upper data ``(nnz_upper,)`` in an upper-triangular CSR matrix (no copy)."""
+        return sp.csr_matrix(
+            (upper, self.upper_indices, self.upper_indptr), shape=self.shape, copy=False
+        )
+
+    def assemble(self, Ke, *, diag=None) -> sp.csr_matrix:
         """Global Hessian with Dirichlet elimination, ``(n_dofs, n_dofs)`` CSR.
 
-        ``Ke``: ``(n_cells, k*d, k*d)``; ``diag``: optional ``(n_dofs,)`` diagonal term.
+        ``Ke``: ``(n_cells, k*d, k*d)`` (symmetrised); ``diag``: optional ``(n_dofs,)``.
         """
-        data = self.assemble_data(Ke, eliminate=True, symmetrize=symmetrize, diag=diag)
-        return self.matrix(data)
+        return self.matrix(self.assemble_data(Ke, eliminate=True, diag=diag))
 
-    def assemble_full(self, Ke, *, symmetrize: bool = True, diag=None) -> sp.csr_matrix:
+    def assemble_full(self, Ke, *, diag=None) -> sp.csr_matrix:
         """Global Hessian without elimination (all dofs), ``(n_dofs, n_dofs)`` CSR."""
-        data = self.assemble_data(Ke, eliminate=False, symmetrize=symmetrize, diag=diag)
-        return self.matrix(data)
+        return self.matrix(self.assemble_data(Ke, eliminate=False, diag=diag))
 
     def to_bsr(self, K: sp.csr_matrix) -> sp.bsr_matrix:
         """The same matrix as BSR with ``(dim, dim)`` node blocks (a gather, no search).
 
-        ``K`` must have this pattern (e.g. come from :meth:`assemble`).
+        ``K`` must have this (full) pattern (e.g. come from :meth:`assemble`).
         """
         d = self.dim
         blocks = K.data[self.bsr_perm].reshape(-1, d, d)
@@ -180,7 +238,7 @@ class SparsityPattern:
         )
 
     def has_pattern(self, K) -> bool:
-        """Whether CSR matrix ``K`` has exactly this structure (cheap identity test first)."""
+        """Whether CSR matrix ``K`` has exactly this (full) structure (identity test first)."""
         if not sp.issparse(K) or K.format != "csr" or K.shape != self.shape:
             return False
         if K.indices is self.indices and K.indptr is self.indptr:
@@ -202,8 +260,9 @@ class _NodeBlocks(NamedTuple):
 
     ``key``: ``(n_blocks,)`` int64 ``row*n_nodes + col``, sorted; ``row``, ``col``: its
     parts; ``deg``: ``(n_nodes,)`` blocks per node row; ``indptr``: ``(n_nodes + 1,)``
-    int64 block-row pointers; ``of_entry``: ``(n_cells, k, k)`` block index of the node
-    pair ``(cells[c, a], cells[c, b])``.
+    int64 block-row pointers; ``of_entry``: ``(n_cells, k, k)`` int32 block index of the
+    node pair ``(cells[c, a], cells[c, b])``; ``diag``: ``(n_nodes,)`` block index of
+    ``(a, a)``; ``transpose``: ``(n_blocks,)`` index of the transposed block.
     """
 
     key: np.ndarray
@@ -212,6 +271,8 @@ class _NodeBlocks(NamedTuple):
     deg: np.ndarray
     indptr: np.ndarray
     of_entry: np.ndarray
+    diag: np.ndarray
+    transpose: np.ndarray
 
 
 def _check_inputs(cells, n_nodes, dim, fixed):
@@ -226,96 +287,143 @@ def _check_inputs(cells, n_nodes, dim, fixed):
     fixed = np.asarray(fixed, dtype=bool).reshape(-1)
     if fixed.shape != (nd,):
         raise ValueError(f"fixed must have n_nodes*dim = {nd} entries, got {fixed.size}")
+    if cells.size and (cells.min() < 0 or cells.max() >= n):
+        raise ValueError(f"cells reference nodes outside [0, {n})")
     return cells.astype(np.int64), n, d, fixed
 
 
 def _node_blocks(cells: np.ndarray, n: int) -> _NodeBlocks:
-    """Unique node pairs of the connectivity ``(n_cells, k)`` over ``n`` nodes.
+    """Unique node pairs of the connectivity ``(n_cells, k)`` over ``n`` nodes, with every
+    diagonal pair ``(a, a)`` included.
 
     A stable argsort of int64 keys (radix/timsort) is ~5x faster than np.unique's quicksort.
     """
     c, k = cells.shape
-    key = (cells[:, :, None] * n + cells[:, None, :]).reshape(-1)  # (c*k*k,)
+    diag_keys = np.arange(n, dtype=np.int64) * (n + 1)
+    key = np.concatenate([(cells[:, :, None] * n + cells[:, None, :]).reshape(-1), diag_keys])
     order = np.argsort(key, kind="stable")
     skey = key[order]
+    del key
     new_block = np.empty(skey.size, dtype=bool)
     new_block[0] = True
     np.not_equal(skey[1:], skey[:-1], out=new_block[1:])
     ukey = skey[new_block]  # (n_blocks,)
-    q = np.empty(key.size, dtype=np.int64)
-    q[order] = np.cumsum(new_block) - 1  # block index of every (c, a, b)
-    del key, order, skey, new_block
+    del skey
+    if ukey.size > _INT32_MAX:
+        raise ValueError(f"{ukey.size} node blocks exceed int32 indices")
+    q = np.empty(order.size, dtype=np.int32)
+    q[order] = np.cumsum(new_block, dtype=np.int64) - 1  # block index of every key
+    del order, new_block
     row = ukey // n
     col = ukey - row * n
     deg = np.bincount(row, minlength=n)
-    indptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(deg, out=indptr[1:])
-    return _NodeBlocks(ukey, row, col, deg, indptr, q.reshape(c, k, k))
+    indptr = _row_pointers(deg)
+    transpose = np.searchsorted(ukey, col * n + row).astype(np.int32)
+    return _NodeBlocks(
+        ukey, row, col, deg, indptr, q[: c * k * k].reshape(c, k, k), q[c * k * k :], transpose
+    )
 
 
-def _scatter_map(cells: np.ndarray, blocks: _NodeBlocks, d: int) -> np.ndarray:
-    """CSR data slot of every element-Hessian entry, ``(n_cells*(k*d)**2,)`` intp.
-
-    The slot of (row ``a*d+i``, col ``b*d+j``) where ``q`` is the index of block (a, b) is
-    ``d*d*indptr[a] + i*d*deg[a] + d*(q - indptr[a]) + j`` (node a's d dof rows are
-    consecutive, each holding ``d*deg[a]`` entries).
-    """
-    c, k = cells.shape
-    ii = np.arange(d)
-    start, deg = blocks.indptr[cells][:, :, None], blocks.deg[cells][:, :, None]
-    row_part = (d * d - d) * start + (ii * d) * deg  # (c, k, d)
-    col_part = (d * blocks.of_entry)[:, :, :, None] + ii  # (c, k, k, d)
-    scatter = np.empty((c, k, d, k * d), dtype=np.intp)  # = Ke.reshape(c, k, d, k*d)
-    np.add(row_part[..., None], col_part.reshape(c, k, 1, k * d), out=scatter)
-    return scatter.reshape(-1)
-
-
-def _dof_row_pointers(deg: np.ndarray, d: int) -> np.ndarray:
-    """CSR row pointers ``(n*d + 1,)`` int64 from the blocks per node row ``deg``."""
-    row_len = np.repeat(d * deg, d)
+def _row_pointers(row_len: np.ndarray) -> np.ndarray:
+    """CSR row pointers ``(len + 1,)`` int64 from row lengths (checked against int32)."""
     indptr = np.zeros(row_len.size + 1, dtype=np.int64)
     np.cumsum(row_len, out=indptr[1:])
-    if indptr[-1] >= np.iinfo(np.int32).max:
+    if indptr[-1] >= _INT32_MAX:
         raise ValueError(f"{int(indptr[-1])} nonzeros exceed int32 CSR indices")
     return indptr
 
 
 def _block_layout(blocks: _NodeBlocks, d: int, nnz: int):
-    """``(bsr_perm (n_blocks, d, d), indices (nnz,) int32, transpose (nnz,))``.
+    """``(bsr_perm (n_blocks, d, d) int64, indices (nnz,) int32)`` of the full matrix.
 
-    Works block by block (BSR order (block, i, j)), then permutes into CSR order:
-    ``bsr_perm[b, i, j]`` is the CSR slot of entry (i, j) of block b.
+    ``bsr_perm[b, i, j]`` is the CSR slot of entry (i, j) of block b (BSR order).
     """
     ii = np.arange(d)
-    row, n = blocks.row, blocks.deg.size
+    row = blocks.row
     start = blocks.indptr[row]
     bsr_perm = (
         (d * d * start + d * (np.arange(row.size) - start))[:, None, None]
         + (ii * d)[None, :, None] * blocks.deg[row][:, None, None]
         + ii[None, None, :]
-    ).astype(np.intp)
+    )
     indices = np.empty(nnz, dtype=np.int32)
     indices[bsr_perm] = (blocks.col * d)[:, None, None] + ii[None, None, :]
-    bt = np.searchsorted(blocks.key, blocks.col * n + row)  # index of the transposed block
-    transpose = np.empty(nnz, dtype=np.intp)
-    transpose[bsr_perm] = bsr_perm[bt].transpose(0, 2, 1)
-    return bsr_perm, indices, transpose
+    return bsr_perm, indices
 
 
-def _dirichlet_slots(blocks: _NodeBlocks, bsr_perm: np.ndarray, fixed: np.ndarray, d: int):
-    """``(zeroed, fixed_diag, diag_slots)`` CSR data slots (see :class:`SparsityPattern`)."""
+class _Upper(NamedTuple):
+    """Upper-triangle CSR layout: ``indptr (n*d + 1,)`` int64, ``indices (nnz_upper,)``
+    int32, and ``table (n_blocks, d, d)`` int32, the upper slot of entry ``(i, j)`` of
+    every block of the symmetric matrix (blocks below the diagonal, and ``i > j`` in
+    diagonal blocks, mirrored).
+
+    Row ``a*d + i`` holds the diagonal block's columns ``a*d + j`` for ``j ≥ i`` (diagonal
+    first), then the ``d`` columns of every block ``(a, b)`` with ``b > a``, in order.
+    """
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    table: np.ndarray
+
+
+def _upper(blocks: _NodeBlocks, d: int) -> _Upper:
+    """The upper-triangle layout of the block pattern (see :class:`_Upper`)."""
+    n_up = blocks.indptr[1:] - blocks.diag - 1  # blocks (a, b) with b > a, per node
     ii = np.arange(d)
+    row_len = (d - ii)[None, :] + d * n_up[:, None]  # (n, d)
+    indptr = _row_pointers(row_len.reshape(-1))
+    # slot of (i, j) in an upper block q of node row a: U0[a] + i*d*n_up[a] + c[i] +
+    # d*(q - diag[a] - 1) + j, with c[i] = i*d - i(i-1)/2 + (d - i) the entries of the
+    # diagonal block in rows <= i; in the diagonal block: U0[a] + i*d*n_up[a] + c[i] - (d - i)
+    # + (j - i) for j >= i
+    c = ii * d - ii * (ii - 1) // 2
+    u0 = indptr[:-1:d]  # (n,)
     row, col = blocks.row, blocks.col
-    fixed_n = fixed.reshape(-1, d)
-    fr = fixed_n[row][:, :, None]  # (nb, d, 1): row dof fixed
-    fc = fixed_n[col][:, None, :]  # (nb, 1, d): column dof fixed
-    zeroed = np.sort(bsr_perm[fr | fc])
-    on_diag = row == col
-    diag = on_diag[:, None, None] & (ii[:, None] == ii[None, :])[None]
-    fixed_diag = np.sort(bsr_perm[fr & diag])
-    diag_slots = np.empty(fixed.size, dtype=np.intp)  # diagonal blocks (a, a), in row order
-    diag_slots[(row[on_diag] * d)[:, None] + ii] = bsr_perm[on_diag][:, ii, ii]
-    return zeroed, fixed_diag, diag_slots
+    up = col > row
+    q_up = np.where(col < row, blocks.transpose, np.arange(row.size))  # its upper twin
+    a = row[q_up]
+    base = u0[a] + d * (q_up - blocks.diag[a] - 1)  # (n_blocks,)
+    stride = d * n_up[a]
+    table = np.empty((row.size, d, d), dtype=np.int32)
+    for i in range(d):
+        for j in range(d):
+            off_up = base + i * stride + c[i] + (d - i) + j  # block (a, b), b > a, entry (i, j)
+            off_lo = base + j * stride + c[j] + (d - j) + i  # mirrored: (j, i) of the twin
+            lo, hi = min(i, j), max(i, j)
+            off_dg = u0[a] + lo * stride + c[lo] + (hi - lo)
+            table[:, i, j] = np.where(up, off_up, np.where(col < row, off_lo, off_dg))
+    indices = np.empty(int(indptr[-1]), dtype=np.int32)
+    for i in range(d):
+        for j in range(d):
+            keep = up | ((col == row) & (i <= j))
+            indices[table[keep, i, j]] = col[keep] * d + j
+    return _Upper(indptr, indices, table)
+
+
+def _element_map(cells: np.ndarray, blocks: _NodeBlocks, up: _Upper, d: int) -> np.ndarray:
+    """Upper slot of every local upper entry of every element Hessian, int32 (a gather
+    from the block table, in chunks of cells to bound the transient memory)."""
+    c, k = cells.shape
+    m = k * d
+    p, r = local_upper(m)
+    a, b = p // d, r // d
+    within = ((p % d) * d + r % d).astype(np.int64)
+    flat = up.table.reshape(-1)
+    out = np.empty(c * p.size, dtype=np.int32)
+    step = max(1, _CHUNK // max(p.size, 1))
+    for s in range(0, c, step):
+        e = min(c, s + step)
+        q = blocks.of_entry[s:e][:, a, b].astype(np.int64)  # (chunk, n_local)
+        out[s * p.size : e * p.size] = flat[q * (d * d) + within].reshape(-1)
+    return out
+
+
+def _dirichlet_slots(up: _Upper, fixed: np.ndarray, d: int):
+    """``(zeroed, fixed_diag)`` int32 upper slots (see :class:`SparsityPattern`)."""
+    rows = np.repeat(np.arange(fixed.size), np.diff(up.indptr))
+    zeroed = np.flatnonzero(fixed[rows] | fixed[up.indices]).astype(np.int32)
+    fixed_diag = up.indptr[:-1][fixed].astype(np.int32)
+    return zeroed, fixed_diag
 
 
 # ----------------------------------------------------------------------------------------

@@ -20,8 +20,8 @@ from jax.core import Tracer
 from ..loads import Dirichlet
 from ..potential import Potential
 from .adjoint import ImplicitAdjoint, differentiable_minimize
-from .linear import bind_linear
-from .newton import Newton
+from .linear import AMG, Direct, bind_linear
+from .newton import Newton, host_minimize
 from .pattern import rigid_body_modes
 from .results import Solution, SolveError, Status
 
@@ -44,8 +44,22 @@ def bind_solver(solver: Newton, mesh, bc: Dirichlet) -> Newton:
 
 
 @functools.partial(jax.jit, static_argnames=("solver", "adjoint"))
-def _solve_jit(pot, bc, x0, solver, adjoint):
+def _solve_jit(pot, bc, x0, solver, adjoint, hierarchy=None):
+    if hierarchy is not None:  # a device linear solver's arrays travel as an argument
+        solver = dataclasses.replace(
+            solver, linear=dataclasses.replace(solver.linear, hierarchy=hierarchy)
+        )
     return differentiable_minimize(solver, adjoint, pot, bc, x0)
+
+
+def _split_hierarchy(solver: Newton):
+    """``(solver without its linear solver's device arrays, the arrays or None)``: a
+    :class:`~jaxelastic.solvers.linear.Multilevel` hierarchy is passed to the compiled
+    solve as an argument, not closed over (large XLA constants, one compile per mesh)."""
+    h = getattr(solver.linear, "hierarchy", None)
+    if h is None:
+        return solver, None
+    return dataclasses.replace(solver, linear=dataclasses.replace(solver.linear, hierarchy=None)), h
 
 
 def _check_inputs(pot: Potential, bc: Dirichlet, x0):
@@ -110,8 +124,11 @@ def _free_rigid_motions(pot: Potential, bc: Dirichlet) -> list[str]:
 
 
 def _check_constrained(pot: Potential, bc: Dirichlet) -> None:
-    if pot.mass is not None:
+    static_form = pot.inertia_weight is not None and not np.any(np.asarray(pot.inertia_weight))
+    if pot.mass is not None and not static_form:  # (zero weight: dynamics.static_potential)
         return  # dynamics: a free body is valid (the mass term removes the null space)
+    if pot.contact is not None:
+        return  # obstacles may hold the body (a singular Hessian then fails the solve)
     free = _free_rigid_motions(pot, bc)
     if free:
         raise ValueError(
@@ -171,16 +188,29 @@ def solve(
         return differentiable_minimize(solver, adjoint, pot, bc, x0)
     _check_constrained(pot, bc)
     t0 = time.perf_counter()
-    res = jax.block_until_ready(_solve_jit(pot, bc, x0, solver, adjoint))
+    if isinstance(solver.linear, (Direct, AMG)):
+        # Newton's loop on the host: its compiled pieces, but for the linear solve's
+        # callback, go to the persistent compilation cache (see newton.host_minimize)
+        res = jax.block_until_ready(host_minimize(solver, pot, bc, x0))
+    else:
+        static, hierarchy = _split_hierarchy(solver)
+        res = jax.block_until_ready(_solve_jit(pot, bc, x0, static, adjoint, hierarchy))
     stats = dict(res.stats, wall_time=time.perf_counter() - t0)
     res = res._replace(stats=stats)
     if throw and int(res.status) != Status.SUCCESS:
         what = "Newton solve"
         if x0.dtype == jnp.float32:
+            x64 = jax.config.jax_enable_x64  # pyright: ignore[reportAttributeAccessIssue]
+            how = (
+                "build the mesh in float64 (e.g. je.box(..., dtype=jnp.float64), or "
+                '[solver] precision = "float64" in a scene)'
+                if x64
+                else "enable float64 with jax.config.update('jax_enable_x64', True)"
+            )
             what += (
-                " in float32 (x64 is off: the residual cannot go below its round-off floor, "
-                f"{float(res.stats['residual_floor']):.2e} here; enable float64 with "
-                "jax.config.update('jax_enable_x64', True) or loosen rtol/atol)"
+                " in float32 (Newton stops with SUCCESS at the residual's round-off floor, "
+                f"{float(res.stats['residual_floor']):.2e} here, once a full step no longer "
+                f"reduces it; to solve in float64, {how})"
             )
         raise SolveError(res, what)
     return res

@@ -1,0 +1,100 @@
+"""Building a :class:`~jaxelastic.contact.term.Contact` for a potential: contact nodes,
+automatic d̂ and κ, friction on/off, and the adaptive κ update between steps."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..mesh import boundary_nodes
+from ..potential import Potential, elastic_element_hessians, node_hessian_blocks
+from .barrier import adapt_kappa, default_dhat, kappa_from_stiffness
+from .friction import EPS_REL
+from .term import Contact
+
+__all__ = ["make_contact", "with_contact", "contact_nodes", "auto_kappa", "adapt"]
+
+
+def contact_nodes(mesh) -> np.ndarray:
+    """``(m,)`` int32 contact nodes: the boundary nodes (P2: corners and mid-sides)."""
+    return np.asarray(boundary_nodes(mesh), dtype=np.int32)
+
+
+def auto_kappa(pot: Potential, nodes) -> jax.Array:
+    """κ [N/m] from the elastic Hessian at the rest shape: the mean diagonal node stiffness
+    over ``nodes`` (:func:`~jaxelastic.contact.barrier.kappa_from_stiffness`); inertia and
+    any contact term of ``pot`` are left out. One element-Hessian evaluation.
+    """
+    base = pot.replace(contact=None, mass=None, mass_damping=None)
+    return _kappa(base, jnp.asarray(nodes))
+
+
+@jax.jit
+def _kappa(base: Potential, nodes):
+    Ke = elastic_element_hessians(base, base.mesh.points, project=True)
+    return kappa_from_stiffness(node_hessian_blocks(base, Ke), nodes)
+
+
+def make_contact(
+    pot: Potential,
+    obstacles: Sequence,
+    *,
+    nodes=None,
+    dhat=None,
+    kappa=None,
+    friction: bool | None = None,
+    eps=None,
+    t=0.0,
+) -> Contact:
+    """A :class:`Contact` of ``pot``'s body with ``obstacles``.
+
+    Args:
+        pot: the potential (its mesh, material and masses set κ).
+        obstacles: obstacles (:mod:`~jaxelastic.contact.obstacles`), at least one.
+        nodes: ``(m,)`` contact nodes (default: every boundary node).
+        dhat: barrier reach [m] (default 1e-3 × the rest bounding-box diagonal).
+        kappa: barrier stiffness [N/m] (default :func:`auto_kappa`).
+        friction: lagged friction on/off (default: on if an obstacle has μ > 0); the lag
+            starts at the rest shape (:meth:`Contact.lag` moves it).
+        eps: friction slip tolerance [m] (default 1e-5 × the bounding-box diagonal).
+        t: initial obstacle time [s].
+
+    Raises:
+        ValueError: no obstacle, or a contact node inside an obstacle at the rest shape.
+    """
+    obstacles = tuple(obstacles)
+    if not obstacles:
+        raise ValueError("make_contact needs at least one obstacle")
+    X = pot.mesh.points
+    dt = X.dtype
+    nodes = jnp.asarray(contact_nodes(pot.mesh) if nodes is None else nodes, jnp.int32)
+    dhat = default_dhat(X) if dhat is None else jnp.asarray(dhat, dt)
+    kappa = auto_kappa(pot, nodes) if kappa is None else jnp.asarray(kappa, dt)
+    c = Contact(nodes, obstacles, jnp.asarray(dhat, dt), jnp.asarray(kappa, dt), jnp.asarray(t, dt))
+    dmin = float(c.min_distance(X))
+    if not dmin > 0:
+        raise ValueError(
+            f"make_contact: a contact node is inside an obstacle at the rest shape (min "
+            f"distance {dmin:.3g} m): move the obstacle or the mesh so they start apart"
+        )
+    if friction is None:
+        friction = any(float(jnp.asarray(ob.friction)) > 0 for ob in obstacles)
+    if friction:
+        eps = EPS_REL * float(default_dhat(X, 1.0)) if eps is None else eps
+        c = c.lag(X, eps=eps)
+    return c
+
+
+def with_contact(pot: Potential, obstacles: Sequence, **kw) -> Potential:
+    """``pot`` with a contact term (:func:`make_contact`, same keywords)."""
+    return pot.replace(contact=make_contact(pot, obstacles, **kw))
+
+
+def adapt(contact: Contact, x: jax.Array, max_kappa=None) -> Contact:
+    """``contact`` with κ doubled if the smallest gap at ``x`` is below 1e-2·d̂
+    (:func:`~jaxelastic.contact.barrier.adapt_kappa`); jit-able."""
+    k = adapt_kappa(contact.kappa, contact.min_distance(x), contact.dhat, max_kappa)
+    return contact.replace(kappa=k)

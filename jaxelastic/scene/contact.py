@@ -1,0 +1,95 @@
+"""Scene ``[[obstacle]]`` / ``[contact]`` tables → a contact term, and its summary entries.
+
+A scene without ``[[obstacle]]`` gets no contact term (``Potential.contact = None``).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..contact import Box, HalfSpace, Sphere, make_contact
+from ..potential import Potential
+from .callables import CallableSpecError, import_callable
+from .load import Scene
+from .schema import ContactSpec
+
+__all__ = ["build_contact", "contact_report", "min_gap"]
+
+
+def _obstacle(scene: Scene, i: int, spec, mu: float, dtype):
+    key = f"[[obstacle]][{i}]"
+    motion = None
+    if spec.motion is not None:
+        try:
+            motion = import_callable(spec.motion, scene.base_dir)
+        except CallableSpecError as e:
+            raise scene.error(f"{key}.motion: {e}") from None
+    a = functools.partial(jnp.asarray, dtype=dtype)
+    f = a(mu)
+    if spec.plane is not None:
+        if not np.any(np.asarray(spec.plane.normal)):
+            raise scene.error(f"{key}.plane.normal must not be zero")
+        return HalfSpace(a(spec.plane.point), a(spec.plane.normal), f, motion)
+    if spec.sphere is not None:
+        return Sphere(a(spec.sphere.center), a(spec.sphere.radius), f, motion)
+    return Box(a(spec.box.lo), a(spec.box.hi), f, motion)
+
+
+def build_contact(scene: Scene, pot: Potential) -> Potential:
+    """``pot`` with the scene's contact term (unchanged without ``[[obstacle]]``).
+
+    Raises:
+        SceneError: ``[contact]`` without obstacles, or a body node inside an obstacle at
+            the rest shape.
+    """
+    spec = scene.spec
+    if not spec.obstacle:
+        if spec.contact is not None:
+            raise scene.error("[contact] needs at least one [[obstacle]]")
+        return pot
+    cs = spec.contact or ContactSpec()
+    dt = pot.mesh.points.dtype
+    obs = [
+        _obstacle(scene, i, o, cs.friction if o.friction is None else o.friction, dt)
+        for i, o in enumerate(spec.obstacle)
+    ]
+    try:
+        c = make_contact(pot, obs, dhat=cs.dhat, kappa=cs.kappa)
+    except ValueError as e:
+        raise scene.error(f"[[obstacle]]: {e}") from None
+    return pot.replace(contact=c)
+
+
+@jax.jit
+def _gap_and_force(contact, x, t):
+    c = contact.at_time(t)
+    f = c.forces(x)
+    active = jnp.sum(jnp.any(c.distances(x) < c.dhat, axis=0))
+    return c.min_distance(x), jnp.sum(f, axis=0), active
+
+
+def min_gap(pot: Potential, x, t: Any = 0.0) -> float:
+    """Smallest node–obstacle distance [m] at ``x`` ``(n, dim)`` with obstacles at ``t``."""
+    return float(_gap_and_force(pot.contact, x, t)[0])
+
+
+def contact_report(pot: Potential, x, t: Any = 0.0, min_distance: float | None = None) -> dict:
+    """``summary.json`` entries of a contact scene at the final ``x``: ``min_distance``
+    over the run (``min_distance``, else at ``x``) [m], ``total_contact_force`` ``(dim,)``
+    [N] (barrier + friction, on the body), ``active_nodes`` (within d̂), ``dhat`` [m] and
+    ``kappa`` [N/m]."""
+    c = pot.contact
+    d, f, active = _gap_and_force(c, x, t)
+    return dict(
+        min_distance=float(d) if min_distance is None else min(float(d), min_distance),
+        final_min_distance=float(d),
+        total_contact_force=np.asarray(f).tolist(),
+        active_nodes=int(active),
+        dhat=float(c.dhat),
+        kappa=float(c.kappa),
+    )
