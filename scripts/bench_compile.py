@@ -319,7 +319,9 @@ def main(argv=None) -> int:
         _print_whole(result["whole"])
     result["load_average_end"] = os.getloadavg()
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
-    Path(a.out).write_text(json.dumps(result, indent=1))
+    from jaxelastic.io import write_json  # atomic; imported late: the parent runs no JAX
+
+    write_json(a.out, result)
     load = f"{result['load_average'][0]:.1f} -> {result['load_average_end'][0]:.1f}"
     print(f"\nwrote {a.out} (load average {load})")
     return 0

@@ -222,7 +222,9 @@ def main(argv=None) -> int:
     print(_table(rows))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1))
+    from jaxelastic.io import write_json  # atomic; imported late: the parent runs no JAX
+
+    write_json(out, res)
     print(f"wrote {out} ({res['elapsed_s']:.0f} s)")
     return 0
 

@@ -148,7 +148,9 @@ def main(argv=None) -> None:
     print(_table(rows))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(dict(benchmark="twist", rtol=1e-8, runs=rows), indent=2))
+    from jaxelastic.io import write_json  # atomic; imported late: the parent runs no JAX
+
+    write_json(out, dict(benchmark="twist", rtol=1e-8, runs=rows), indent=2)
     print(f"wrote {out}")
 
 

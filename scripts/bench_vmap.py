@@ -32,7 +32,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import resource
 import sys
 import time
@@ -266,7 +265,9 @@ def main(argv=None) -> int:
     print(_table(res))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1))
+    from jaxelastic.io import write_json  # atomic
+
+    write_json(out, res)
     print(f"wrote {out}")
     return 0
 

@@ -13,7 +13,6 @@ fitted on a log–log scale.
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import resource
 import time
@@ -123,7 +122,7 @@ def main() -> None:
         print(f"     exponent {r['exponent']:.3f} (Hertz 1.5), wall {r['wall_time']:.1f} s")
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=1))
+    je.io.write_json(out, results)
     print(f"wrote {out}")
 
 
