@@ -42,7 +42,14 @@ from .backends import AMGSolver, DirectSolver, make_backend
 from .pattern import SparsityPattern
 from .results import Status
 
-__all__ = ["HostLinearSolver", "SUCCESS", "NONFINITE", "NOT_POSITIVE_DEFINITE"]
+__all__ = [
+    "HostLinearSolver",
+    "ContentCache",
+    "content_key",
+    "SUCCESS",
+    "NONFINITE",
+    "NOT_POSITIVE_DEFINITE",
+]
 
 # the statuses :meth:`HostLinearSolver.factor` returns (members of je.Status)
 SUCCESS = Status.SUCCESS  # factorised (positive definite) / AMG hierarchy built
@@ -61,6 +68,31 @@ def content_key(cells, points, fixed, kind: str, opts: dict) -> tuple:
     return (kind, n, d, h.hexdigest(), repr(sorted(opts.items())))
 
 
+class ContentCache:
+    """A thread-safe least-recently-used cache of host-built solver data by
+    :func:`content_key`, keeping the last ``capacity`` entries."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self._items: dict = {}  # key -> value, least recently used first
+        self._lock = threading.Lock()
+
+    def get(self, key, build):
+        """The entry of ``key``, built by ``build()`` on first use (or after eviction)."""
+        with self._lock:
+            value = self._items.pop(key, None)
+            if value is None:
+                value = build()
+            self._items[key] = value  # most recently used last
+            while len(self._items) > self.capacity:
+                self._items.pop(next(iter(self._items)))
+            return value
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+
+
 def _release_all() -> None:
     """At interpreter exit, drop every live factorisation before the extension modules are
     torn down: cholespy objects still referenced from jit caches would otherwise be reported
@@ -75,8 +107,7 @@ atexit.register(_release_all)
 
 SHARED_CAPACITY = 8
 """How many distinct host solvers :meth:`HostLinearSolver.shared` keeps alive."""
-_SHARED: dict = {}  # content key -> instance, least recently used first
-_SHARED_LOCK = threading.Lock()
+_SHARED = ContentCache(SHARED_CAPACITY)
 
 
 class HostLinearSolver:
@@ -155,14 +186,7 @@ class HostLinearSolver:
         cells, points = np.asarray(mesh.cells), np.asarray(mesh.points)
         fixed = np.asarray(bc.mask, dtype=bool)
         key = content_key(cells, points, fixed, kind, opts)
-        with _SHARED_LOCK:
-            inst = _SHARED.pop(key, None)
-            if inst is None:
-                inst = cls(cells, points, fixed, kind, **opts)
-            _SHARED[key] = inst  # most recently used last
-            while len(_SHARED) > SHARED_CAPACITY:
-                _SHARED.pop(next(iter(_SHARED)))
-            return inst
+        return _SHARED.get(key, lambda: cls(cells, points, fixed, kind, **opts))
 
     @property
     def exact(self) -> bool:

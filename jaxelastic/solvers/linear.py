@@ -36,7 +36,7 @@ from jax.core import Tracer
 from ..energy import project_psd
 from ..potential import Potential, mass_diagonal, node_hessian_blocks
 from .backends import available_direct_backends
-from .host import HostLinearSolver, content_key
+from .host import ContentCache, HostLinearSolver, content_key
 from .multilevel import Hierarchy, build_hierarchy, preconditioner
 from .pattern import local_upper
 from .results import Solution, Status
@@ -482,8 +482,7 @@ class AMG(_Host):
         return res.x, res.stats["iterations"], st
 
 
-_HIERARCHIES: dict = {}  # content key -> Hierarchy, least recently used first
-_HIERARCHY_CAPACITY = 8
+_HIERARCHIES = ContentCache(8)  # the last 8 (mesh, mask, options) hierarchies
 
 
 def _shared_hierarchy(mesh, bc, max_coarse: int, smooth: bool) -> Hierarchy:
@@ -491,13 +490,12 @@ def _shared_hierarchy(mesh, bc, max_coarse: int, smooth: bool) -> Hierarchy:
     mask: repeated solves of one scene reuse the setup (and the compiled code)."""
     opts = dict(max_coarse=max_coarse, smooth=smooth)
     key = content_key(mesh.cells, mesh.points, bc.mask, "multilevel", opts)
-    h = _HIERARCHIES.pop(key, None)
-    if h is None:
-        h = build_hierarchy(mesh.cells, mesh.points, bc.mask, max_coarse=max_coarse, smooth=smooth)
-    _HIERARCHIES[key] = h
-    while len(_HIERARCHIES) > _HIERARCHY_CAPACITY:
-        _HIERARCHIES.pop(next(iter(_HIERARCHIES)))
-    return h
+    return _HIERARCHIES.get(
+        key,
+        lambda: build_hierarchy(
+            mesh.cells, mesh.points, bc.mask, max_coarse=max_coarse, smooth=smooth
+        ),
+    )
 
 
 @dataclasses.dataclass(frozen=True)
