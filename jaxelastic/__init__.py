@@ -12,6 +12,7 @@ The library never changes JAX's global configuration: enable float64 yourself wi
 
 from . import benchmarks as benchmarks
 from . import contact as contact
+from . import distributed as distributed
 from . import dynamics as dynamics
 from . import fitting as fitting
 from . import io as io
@@ -21,6 +22,7 @@ from . import materials as materials
 from . import mesh as mesh
 from . import potential as potential
 from . import reference as reference
+from . import sharding as sharding
 from . import solvers as solvers
 from .dynamics import Integrator as Integrator
 from .energy import assemble as assemble
@@ -49,6 +51,8 @@ from .mesh import rectangle as rectangle
 from .mesh import to_quadratic as to_quadratic
 from .mesh import with_formulation as with_formulation
 from .potential import Potential as Potential
+from .sharding import Partition as Partition
+from .sharding import shard as shard
 from .solvers import AMG as AMG
 from .solvers import CG as CG
 from .solvers import Direct as Direct

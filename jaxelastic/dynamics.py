@@ -171,6 +171,8 @@ def _start(pot: Potential, state: State, warm):
     assert x_tilde is not None  # set by _step_potential
     if pot.contact is not None:  # a moving obstacle may have swept over x_n
         state = state._replace(x=pot.contact.make_feasible(state.x))
+        if pot.contact.self_contact is not None:  # x̃ is not checked for self-intersection
+            return state.x
     e_tilde = potential_value(pot, x_tilde)
     e_n = potential_value(pot, state.x)
     use_tilde = jnp.isfinite(e_tilde) & ~(e_tilde > e_n)

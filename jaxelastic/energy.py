@@ -36,6 +36,7 @@ by value and non-finite input gives NaN results (the solvers report it in their 
 
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 from collections.abc import Callable
@@ -359,6 +360,8 @@ def energy(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     Args: as :func:`energy_densities` (``x``: ``(n_nodes, d)`` positions [length]).
     """
     _check_call("je.energy", psi, x, mesh, params)
+    if mesh.halo is not None:
+        return _sharded_energy(psi, x, mesh, params)
     return jnp.sum(mesh.weights * _energy_densities(psi, x, mesh, params))
 
 
@@ -478,6 +481,8 @@ def assemble(mesh, per_element: jax.Array) -> jax.Array:
     intermediate). Measured by ``scripts/bench_kernels.py``: 3–6× faster at 10⁵–10⁶ cells
     than a gather-then-sum, and faster than an unsorted scatter-add on XLA:CPU.
     """
+    if getattr(mesh, "halo", None) is not None:
+        return _sharded_assemble(mesh, per_element)
     c, k, d = per_element.shape
     flat = per_element.reshape(c * k, d)
     inc = mesh.incidence  # (n_nodes, valence); padding entries are c*k (out of range)
@@ -496,6 +501,8 @@ def forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     Args: as :func:`energy_densities` (``x``: ``(n_nodes, d)`` positions [length]).
     """
     _check_call("je.forces", psi, x, mesh, params)
+    if mesh.halo is not None:
+        return _sharded_nodal(forces, psi, x, mesh, params)
     return -assemble(mesh, _element_forces(psi, x, mesh, params))
 
 
@@ -527,6 +534,8 @@ def hvp(psi: Psi, x: jax.Array, v: jax.Array, mesh, params) -> jax.Array:
     :func:`energy_densities`.
     """
     _check_call("je.hvp", psi, x, mesh, params, v=v)
+    if mesh.halo is not None:
+        return _sharded_nodal(hvp, psi, x, mesh, params, v)
     dtype = mesh.points.dtype
     ue, ve = displacements(x, mesh)[mesh.cells], v.astype(dtype)[mesh.cells]
     fn = jax.vmap(
@@ -546,6 +555,19 @@ def project_psd(K: jax.Array, floor: float = 0.0) -> jax.Array:
     lam, Q = jnp.linalg.eigh(K)
     lam = jnp.maximum(lam, floor)
     return jnp.einsum("...ij,...j,...kj->...ik", Q, lam, Q)
+
+
+def project_psd_serial(K: jax.Array, floor: float = 0.0) -> jax.Array:
+    """:func:`project_psd` one matrix at a time (``lax.map``), for programs that run on
+    several XLA:CPU devices of one process.
+
+    jaxlib 0.10's batched LAPACK kernels (``eigh``, ``cholesky``, ``inv``) split a batch
+    over XLA:CPU's intra-op thread pool and block on it; when the other devices' programs
+    hold the pool's threads (waiting in a collective), that wait never ends (measured:
+    twist n = 29 on 4 host devices hung in ``dsyevd``'s ``ParallelBatchMap``). A batch of
+    one runs inline, so this cannot deadlock; it is slower than the batched call.
+    """
+    return jax.lax.map(lambda k: project_psd(k, floor), K)
 
 
 # ----------------------------------------------------------------------- element Hessians
@@ -705,7 +727,7 @@ def _fbar_hessian_terms(psi, F, w, p, form: str, pred):
     d = F.shape[-1]
     H = jax.vmap(jax.hessian(psi, argnums=0), in_axes=(0, None))
     eye = jnp.eye(d, dtype=F.dtype)
-    omega = w / jnp.sum(w)
+    omega = w / jnp.where(jnp.sum(w) > 0, jnp.sum(w), 1.0)  # Σw = 0: a padded cell
     if form == "bbar":
         Fb = b_bar(F, w)
         C = _materialize(H(Fb, p), pred)  # (q, d, d, d, d)
@@ -789,6 +811,8 @@ def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = Fa
     Other args as :func:`energy_densities`.
     """
     _check_call("je.element_hessians", psi, x, mesh, params)
+    if mesh.halo is not None:
+        return _sharded_element_hessians(psi, x, mesh, params, project)
     ue = displacements(x, mesh)[mesh.cells]
     c, k, d = ue.shape
     form = _is_fbar(mesh)
@@ -861,3 +885,65 @@ def element_hessians_reference(psi: Psi, x: jax.Array, mesh, params) -> jax.Arra
         return jax.hessian(ee)(ue, dN, w, p).reshape(k * d, k * d)
 
     return _per_cell(ke, params, mesh.n_cells)(ue, mesh.dN, mesh.weights, params)
+
+
+# --------------------------------------------------------------------- sharded meshes
+#
+# A mesh with a halo (jaxelastic.shard) runs the functions above per shard under
+# shard_map on its local tables (Halo.map_mesh): positions enter as owned blocks, the
+# ghosts' displacements are gathered from their owners, nodal results are scatter-added
+# back to the owners and scalars psum-ed. Only interface nodes cross between devices.
+# Jitted (ψ static): an eager shard_map would run op by op, and a fresh closure per call
+# would recompile every time.
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _sharded_energy(psi, x, mesh, params):
+    """:func:`energy` of a sharded mesh: the per-shard energies, psum-ed."""
+    h = mesh.halo
+
+    def body(hl, loc, pts, x_b, p):
+        return hl.psum(energy(psi, hl.displacements(x_b, pts), loc, p))
+
+    return h.map_mesh(body, mesh, x, params, out_specs=jax.sharding.PartitionSpec())
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _sharded_nodal(fn, psi, x, mesh, params, *vs):
+    """``fn(psi, x, mesh, params, *vs)`` (:func:`forces`, :func:`hvp`) of a sharded mesh:
+    local nodal results scatter-added to their owners, ``(n_nodes, d)`` sharded."""
+    h = mesh.halo
+    dtype = mesh.points.dtype
+
+    def body(hl, loc, pts, x_b, p, *v_b):
+        v_loc = [hl.gather(v.astype(dtype)) for v in v_b]
+        return hl.scatter_add(fn(psi, hl.displacements(x_b, pts), *v_loc, loc, p))
+
+    spec = jax.sharding.PartitionSpec(h.axis)
+    return h.map_mesh(body, mesh, x, params, *vs, out_specs=spec)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _sharded_element_hessians(psi, x, mesh, params, project):
+    """:func:`element_hessians` of a sharded mesh: per shard, no communication but the
+    ghosts' displacements; ``(n_cells, k·d, k·d)`` sharded along cells."""
+    h = mesh.halo
+
+    def body(hl, loc, pts, x_b, p):
+        Ke = element_hessians(psi, hl.displacements(x_b, pts), loc, p)
+        return project_psd_serial(Ke) if project else Ke
+
+    spec = jax.sharding.PartitionSpec(h.axis)
+    return h.map_mesh(body, mesh, x, params, out_specs=spec)
+
+
+@jax.jit
+def _sharded_assemble(mesh, per_element):
+    """:func:`assemble` of a sharded mesh: local incidence, then ghost rows to owners."""
+    h = mesh.halo
+
+    def body(hl, loc, pts, pe):
+        return hl.scatter_add(assemble(loc, pe))
+
+    spec = jax.sharding.PartitionSpec(h.axis)
+    return h.map_mesh(body, mesh, per_element, out_specs=spec)

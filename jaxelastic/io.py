@@ -55,6 +55,7 @@ __all__ = [
     "write_vtu",
     "cell_fields",
     "nodal_stress",
+    "contact_point_data",
     "TimeSeriesWriter",
     "write_atomic",
     "write_json",
@@ -681,6 +682,29 @@ def write_json(path, obj, *, indent: int | None = 1, nonfinite: str = "null") ->
     write_atomic(path, write)
 
 
+@jax.jit
+def _contact_fields(contact, x):
+    def gap(p):
+        if not contact.obstacles:  # self-contact only: no obstacle gap
+            return jnp.asarray(jnp.inf, p.dtype)
+        return jnp.min(jnp.stack([ob.distance(p, contact.t) for ob in contact.obstacles]))
+
+    return contact.forces(x), jax.vmap(gap)(x)
+
+
+def contact_point_data(contact, x) -> dict[str, np.ndarray]:
+    """The VTU point fields of a contact term (:class:`~jaxelastic.contact.Contact`) at
+    positions ``x`` ``(n_nodes, dim)`` [m], with the obstacles at ``contact.t``:
+
+    * ``contact_force`` ``(n_nodes, dim)`` [N]: the contact force on each node
+      (``−∂Π_c/∂x``: barrier + friction; zero off the contact nodes and out of reach);
+    * ``gap`` ``(n_nodes,)`` [m]: every node's signed distance to the nearest obstacle
+      (> 0 outside; the barrier acts where ``gap < d̂``).
+    """
+    f, d = _contact_fields(contact, jnp.asarray(x, contact.dhat.dtype))
+    return {"contact_force": np.asarray(f), "gap": np.asarray(d)}
+
+
 def write_vtu(
     path,
     mesh: Mesh,
@@ -693,6 +717,7 @@ def write_vtu(
     plane: str = "strain",
     protect=(),
     overwrite: bool = True,
+    contact=None,
 ) -> None:
     """Write one state of ``mesh`` as a VTU file (rest geometry + ``displacement``).
 
@@ -715,6 +740,8 @@ def write_vtu(
         protect: paths (or :class:`MeshData`) that must never be overwritten, e.g. the
             mesh file the data came from.
         overwrite: replace an existing ``path`` (default, what a time series needs).
+        contact: a :class:`~jaxelastic.contact.Contact` (e.g. ``pot.contact``): add its
+            :func:`contact_point_data` (``contact_force``, ``gap``) as point data.
 
     Raises:
         MeshIOError: ``path`` is protected, or exists and ``overwrite=False``.
@@ -749,6 +776,9 @@ def write_vtu(
     if psi is not None:
         cdata, nodal = _stress_fields(psi, x, mesh, params, plane)
         pdata.update(nodal)
+    if contact is not None:
+        cfields = contact_point_data(contact, x)
+        pdata.update(contact_force=_pad3(cfields["contact_force"]), gap=cfields["gap"])
     for extra, out, n, what in (
         (point_data, pdata, mesh.n_nodes, "n_nodes"),
         (cell_data, cdata, mesh.n_cells, "n_cells"),
@@ -793,10 +823,20 @@ class TimeSeriesWriter:
         mesh: the rest mesh.
         psi, params: optional material, to add :func:`cell_fields` to every step.
         plane: 2D only, ``"strain"`` or ``"stress"`` (see :func:`cell_fields`).
+        contact: optional :class:`~jaxelastic.contact.Contact`: every step gets its
+            :func:`contact_point_data` with the obstacles at the step's time ``t``.
     """
 
     def __init__(
-        self, directory, basename: str, mesh: Mesh, psi=None, params=None, *, plane="strain"
+        self,
+        directory,
+        basename: str,
+        mesh: Mesh,
+        psi=None,
+        params=None,
+        *,
+        plane="strain",
+        contact=None,
     ):
         if not basename or os.sep in basename or (os.altsep and os.altsep in basename):
             raise ValueError(f"basename must be a plain file stem, got {basename!r}")
@@ -807,6 +847,7 @@ class TimeSeriesWriter:
             raise ValueError(f"plane must be 'strain' or 'stress', got {plane!r}")
         self.basename, self.mesh, self.psi, self.params = basename, mesh, psi, params
         self.plane = plane
+        self.contact = contact
         self.steps: list[tuple[float, str]] = []  # (time, file name relative to directory)
         self._closed = False
         os.makedirs(self.directory, exist_ok=True)
@@ -849,6 +890,7 @@ class TimeSeriesWriter:
             psi=self.psi,
             params=p,
             plane=self.plane,
+            contact=None if self.contact is None else self.contact.at_time(t),
         )
         self.steps.append((t, name))
         self._write_pvd()

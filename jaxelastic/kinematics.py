@@ -116,7 +116,9 @@ def b_bar(F: jax.Array, w: jax.Array) -> jax.Array:
     """
     d = F.shape[-1]
     tr = jnp.trace(F, axis1=-2, axis2=-1)  # (q,)
-    shift = (jnp.sum(w * tr) / jnp.sum(w) - tr) / d
+    sw = jnp.sum(w)
+    shift = (jnp.sum(w * tr) / jnp.where(sw > 0, sw, 1.0) - tr) / d
+    shift = jnp.where(sw > 0, shift, 0.0)  # Σw = 0 (a padded cell): F̄ = F
     return F + shift[:, None, None] * jnp.eye(d, dtype=F.dtype)[None]
 
 
@@ -144,7 +146,8 @@ def f_bar(F: jax.Array, w: jax.Array) -> jax.Array:
     """
     d = F.shape[-1]
     J = jax.vmap(det)(F)
-    Jbar = jnp.sum(w * J) / jnp.sum(w)
+    sw = jnp.sum(w)
+    Jbar = jnp.sum(w * J) / jnp.where(sw > 0, sw, 1.0)  # Σw = 0 (a padded cell): J̄ = 0, F̄ = F
     ok = (J > 0) & (Jbar > 0)
     ratio = jnp.where(ok, Jbar / jnp.where(ok, J, 1.0), 1.0)  # safe: no NaN in gradients
     return (ratio ** (1.0 / d))[:, None, None] * F

@@ -254,9 +254,12 @@ def element_hessian_vp(pot: Potential, Ke: jax.Array, v: jax.Array) -> jax.Array
     """``(∂²Π/∂x²)·v`` from precomputed elastic element Hessians ``(n_cells, k·d, k·d)``
     plus the lumped-mass diagonal (the stiffness-damping term is not included)."""
     mesh = pot.mesh
-    ve = v[mesh.cells].reshape(mesh.n_cells, -1)
-    out = jnp.einsum("cij,cj->ci", Ke, ve).reshape(mesh.cells.shape + (-1,))
-    Hv = assemble(mesh, out)
+    if mesh.halo is not None:  # per shard: gather v's ghosts, scatter-add to owners
+        Hv = _sharded_kv(mesh, Ke, v)
+    else:
+        ve = v[mesh.cells].reshape(mesh.n_cells, -1)
+        out = jnp.einsum("cij,cj->ci", Ke, ve).reshape(mesh.cells.shape + (-1,))
+        Hv = assemble(mesh, out)
     md = mass_diagonal(pot)
     if md is not None:
         Hv = Hv + md[:, None] * v
@@ -271,16 +274,54 @@ def node_hessian_blocks(pot: Potential, Ke: jax.Array) -> jax.Array:
             stiffness-damping term, if any, is approximated by the same blocks).
     """
     mesh = pot.mesh
-    c, k, d = mesh.n_cells, mesh.cells.shape[1], mesh.dim
+    if mesh.halo is not None:  # per shard; the ghosts' blocks go to their owners
+        B = _sharded_blocks(mesh, Ke)
+    else:
+        B = _node_blocks(mesh, Ke)
+    w = mass_diagonal(pot)
+    if w is not None:
+        B = B + w[:, None, None] * jnp.eye(mesh.dim, dtype=Ke.dtype)[None]
+    return B
+
+
+def _node_blocks(mesh: Mesh, Ke: jax.Array) -> jax.Array:
+    """Σ over a node's cells of their diagonal ``d×d`` blocks, ``(n_nodes, d, d)``."""
+    c, k, d = Ke.shape[0], mesh.cells.shape[1], mesh.dim
     K4 = Ke.reshape(c, k, d, k, d)
     blocks = K4[:, jnp.arange(k), :, jnp.arange(k), :]  # (k, c, d, d)
     blocks = jnp.swapaxes(blocks, 0, 1).reshape(c * k, d, d)
     flat = jnp.concatenate([blocks, jnp.zeros((1, d, d), Ke.dtype)])
-    B = flat[mesh.incidence].sum(axis=1)  # (n, d, d)
-    w = mass_diagonal(pot)
-    if w is not None:
-        B = B + w[:, None, None] * jnp.eye(d, dtype=Ke.dtype)[None]
-    return B
+    return flat[mesh.incidence].sum(axis=1)  # (n, d, d)
+
+
+def _spec(mesh: Mesh):
+    return jax.sharding.PartitionSpec(mesh.halo.axis)
+
+
+@jax.jit
+def _sharded_kv(mesh: Mesh, Ke, v):
+    return mesh.halo.map_mesh(_local_kv, mesh, Ke, v, out_specs=_spec(mesh))
+
+
+@jax.jit
+def _sharded_blocks(mesh: Mesh, Ke):
+    return mesh.halo.map_mesh(_local_blocks, mesh, Ke, out_specs=_spec(mesh))
+
+
+def _local_kv(hl, loc: Mesh, pts, Ke, v):
+    """One shard of :func:`element_hessian_vp`'s ``Σ_c Kₑ vₑ`` (see ``Halo.map_mesh``)."""
+    del pts
+    ve = hl.gather(v)[loc.cells].reshape(loc.n_cells, -1)
+    out = jnp.einsum("cij,cj->ci", Ke, ve).reshape(loc.cells.shape + (-1,))
+    return hl.scatter_add(assemble(loc, out))
+
+
+def _local_blocks(hl, loc: Mesh, pts, Ke):
+    """One shard of :func:`node_hessian_blocks` (see ``Halo.map_mesh``)."""
+    del pts
+    B = _node_blocks(loc, Ke)
+    n, d = B.shape[0], B.shape[1]
+    return hl.scatter_add(B.reshape(n, d * d)).reshape(-1, d, d)
 
 
 def elastic_element_hessians(

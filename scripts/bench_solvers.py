@@ -20,9 +20,15 @@ Hessians, linear solve).
 (tet10; n = 9–10 has about the dofs of P1 n = 19), ``p2fbar`` the same with the F-bar
 formulation, ``composite`` the composite F-bar tets (tet4x8, same nodes as P2).
 
+``--breakdown``: instead, where the time of one warm solve goes, per Newton iteration
+(element Hessians + rhs, host factorisation / AMG setup, host preconditioner or solve
+applications, the whole linear-solve piece, the line search; see
+:func:`breakdown_worker`).
+
 Usage::
 
     python scripts/bench_solvers.py                      # n = 10, 19, 29; cg and direct
+    python scripts/bench_solvers.py --breakdown --sizes 29 --solvers auto
     python scripts/bench_solvers.py --sizes 10 --solvers cg,direct,amg --out out/bench
     python scripts/bench_solvers.py --element p2 --sizes 5,9 --solvers direct,amg
 """
@@ -161,6 +167,77 @@ def worker(n: int, solver: str, element: str = "p1") -> dict:
     )
 
 
+def breakdown_worker(n: int, solver: str, element: str = "p1") -> dict:
+    """Where one warm twist solve's time goes, per Newton iteration (host Newton loop).
+
+    After a cold solve, one warm solve runs with timing wrappers around the three compiled
+    pieces of :func:`jaxelastic.solvers.newton.host_minimize` (element Hessians + rhs;
+    linear solve; line search + update, each synchronised) and around the host back end's
+    calls (assembled data → factorisation / AMG setup; preconditioner or solve
+    applications). The linear-solve piece minus the host calls is the device part: the
+    segment-sum assembly of the CSR data, the host transfers and (AMG) the device CG.
+    """
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxelastic as je
+    from jaxelastic.solvers import newton as N
+
+    mesh, pot, bc = _twist_problem(n, element)
+    linear = je.solvers.bind_linear(solver, mesh, bc)
+    newton = je.Newton(rtol=1e-8, max_steps=50, linear=linear)
+    host = getattr(linear, "backend", None)
+    log: list[dict] = []
+    cur: dict = {}
+
+    def timed(name, fn, sync=True):
+        def wrapped(*a, **k):
+            t = time.perf_counter()
+            out = fn(*a, **k)
+            if sync:
+                jax.block_until_ready(out)
+            cur[name] = cur.get(name, 0.0) + time.perf_counter() - t
+            cur[name + "_calls"] = cur.get(name + "_calls", 0) + 1
+            return out
+
+        return wrapped
+
+    orig = {k: getattr(N, k) for k in ("_host_system", "_host_linear", "_host_update")}
+    if host is not None:  # before compiling: the callbacks capture the bound methods
+        for meth, name in (("factor_upper", "host_factor"), ("apply", "host_apply")):
+            setattr(host, meth, timed(name, getattr(host, meth), sync=False))
+    je.solve(pot, bc, solver=newton, throw=False)  # cold: compile everything
+    cur.clear()
+    N._host_system = timed("element_hessians_rhs", orig["_host_system"])
+    N._host_linear = timed("linear_piece", orig["_host_linear"])
+
+    def update(*a, **k):
+        out = timed("line_search_update", orig["_host_update"])(*a, **k)
+        log.append(dict(cur))
+        cur.clear()
+        return out
+
+    N._host_update = update
+    t0 = time.perf_counter()
+    sol = je.solve(pot, bc, solver=newton, throw=False)
+    total = time.perf_counter() - t0
+    for k, v in orig.items():
+        setattr(N, k, v)
+    keys = sorted({k for row in log for k in row if not k.endswith("_calls")})
+    sums = {k: float(sum(r.get(k, 0.0) for r in log)) for k in keys}
+    return dict(
+        n=n,
+        solver=solver,
+        dofs=int(mesh.n_dofs),
+        total_s=total,
+        newton=int(sol.stats["steps"]),
+        linear_its=int(sol.stats["linear_iterations"]),
+        per_iteration=log,
+        sums_s=sums,
+        peak_rss_mib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+    )
+
+
 def be_step_worker() -> dict:
     """Time one backward-Euler step of the default scene (cold and warm)."""
     import jax
@@ -260,6 +337,43 @@ def _run_sub(args: list[str]) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+_BREAKDOWN_KEYS = (
+    ("element_hessians_rhs", "Ke+rhs"),
+    ("host_factor", "factor/setup"),
+    ("host_apply", "host apply"),
+    ("linear_piece", "lin piece"),
+    ("line_search_update", "line srch"),
+)
+
+
+def _breakdown_main(a) -> int:
+    """``--breakdown``: one row per Newton iteration of one warm solve, seconds."""
+    from jaxelastic.io import write_json
+
+    rows = []
+    for n in [int(s) for s in a.sizes.split(",")]:
+        for solver in a.solvers.split(","):
+            r = _run_sub(["breakdown", str(n), solver, a.element])
+            rows.append(r)
+            if "error" in r:
+                print(f"{n:>3} {solver:>7} ERROR: {r['error'][-300:]}")
+                continue
+            print(
+                f"\ntwist n = {n}, {solver}: warm solve {r['total_s']:.2f} s, {r['newton']} "
+                f"Newton, {r['linear_its']} linear its, peak RSS {r['peak_rss_mib']:.0f} MiB"
+            )
+            print("  it " + " ".join(f"{h:>12}" for _, h in _BREAKDOWN_KEYS) + "  applies")
+            for i, it in enumerate(r["per_iteration"]):
+                vals = " ".join(f"{it.get(k, 0.0):>12.3f}" for k, _ in _BREAKDOWN_KEYS)
+                print(f"  {i:>2} {vals}  {it.get('host_apply_calls', 0):>7}")
+            tot = " ".join(f"{r['sums_s'].get(k, 0.0):>12.3f}" for k, _ in _BREAKDOWN_KEYS)
+            print(f"  Σ  {tot}")
+    Path(a.out).mkdir(parents=True, exist_ok=True)
+    write_json(Path(a.out) / "bench_solvers_breakdown.json", dict(breakdown=rows), indent=2)
+    print(f"\nwrote {Path(a.out) / 'bench_solvers_breakdown.json'}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--sizes", default="10,19,29")
@@ -267,12 +381,19 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/bench_solvers")
     ap.add_argument("--skip-extras", action="store_true", help="skip BE step and parts")
     ap.add_argument("--element", default="p1", choices=sorted(ELEMENTS), help="twist element")
+    ap.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="instead: where one warm solve's time goes, per Newton iteration",
+    )
     ap.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.worker:
         kind = a.worker[0]
         if kind == "twist":
             res = worker(int(a.worker[1]), a.worker[2], *a.worker[3:4])
+        elif kind == "breakdown":
+            res = breakdown_worker(int(a.worker[1]), a.worker[2], *a.worker[3:4])
         elif kind == "be":
             res = be_step_worker()
         else:
@@ -280,6 +401,8 @@ def main(argv=None) -> int:
         print(json.dumps(res))
         return 0
 
+    if a.breakdown:
+        return _breakdown_main(a)
     rows = []
     hdr = (
         f"{'n':>3} {'tets':>7} {'dofs':>7} {'solver':>7} {'back end':>9} {'status':>6} "

@@ -228,3 +228,23 @@ def test_nonlinear_material_is_not_quadratic():
     assert not is_quadratic(pot.replace(psi=materials.neo_hookean))
     fbar = je.box(2, 1, 1, order=2, formulation="fbar")
     assert not is_quadratic(je.Potential(mesh=fbar, params=_PARAMS, psi=materials.linear))
+
+
+def test_auto_keeps_direct_for_quadratic_problems(monkeypatch):
+    """``auto`` picks the direct solver for a quadratic potential above the nonlinear
+    limit (one factorisation beats an AMG-CG solve there), AMG for a nonlinear one; the
+    limits are lowered here so that a small mesh sits between them."""
+    from jaxelastic.solvers import linear as L
+
+    pot, bc = _linear_problem()
+    n = pot.mesh.n_dofs
+    monkeypatch.setattr(L, "AUTO_DIRECT_MAX_DOFS", {2: n - 1, 3: n - 1})
+    monkeypatch.setattr(L, "AUTO_DIRECT_MAX_DOFS_QUADRATIC", {2: n, 3: n})
+    assert isinstance(L.bind_linear("auto", pot.mesh, bc), L.AMG)
+    assert isinstance(L.bind_linear("auto", pot.mesh, bc, quadratic=True), L.Direct)
+    # je.solve passes is_quadratic(pot): the linear material solves directly, in one step
+    r = je.solve(pot, bc, solver=je.Newton(linear="auto"))
+    assert int(r.status) == 0 and int(r.stats["steps"]) == 1
+    assert r.stats["linear_iterations"] == 1  # a direct solve (AMG-CG would iterate)
+    monkeypatch.setattr(L, "AUTO_DIRECT_MAX_DOFS_QUADRATIC", {2: n - 1, 3: n - 1})
+    assert isinstance(L.bind_linear("auto", pot.mesh, bc, quadratic=True), L.AMG)

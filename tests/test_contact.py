@@ -275,15 +275,16 @@ def _load_script(name: str):
 
 @pytest.mark.slow
 def test_hertz_indentation_force_law():
-    """F ∝ δ^{3/2} (fitted exponent within 0.05 of 1.5) and the Hertz constant: the graded
-    P1 quarter block (3k and 10k tets) is too stiff by a margin that shrinks with
-    refinement (``scripts/contact_hertz.py``)."""
+    """F ∝ δ^{3/2} (fitted exponent within 0.05 of 1.5) and the Hertz constant on the
+    graded P2 block of ``scripts/contact_hertz.py`` (L = 8R, linear elasticity, d̂ = 1e-5,
+    δ_eff = δ − gap): too stiff by a margin that shrinks with refinement, within 6 % at
+    n = 8 (measured: +4.7 % at n = 8, 14.7k dofs)."""
     hz = _load_script("contact_hertz")
-    coarse, fine = hz.run(8), hz.run(12)
+    coarse, fine = hz.run(6, order=2), hz.run(8, order=2)
     for r in (coarse, fine):
         assert abs(r["exponent"] - 1.5) < 0.05 and r["min_distance"] > 0
-    err = [float(np.mean(np.abs(r["rel_error"]))) for r in (coarse, fine)]
-    assert err[1] < err[0] and err[1] < 0.25, err  # measured: 28 % → 20 % (n = 16: 15 %)
+    err = [r["constant_error"] for r in (coarse, fine)]
+    assert 0 < err[1] < err[0] and err[1] < 0.06, err
 
 
 def _incline(mu: float, theta_deg: float = 30.0, n_steps: int = 40):
@@ -319,10 +320,26 @@ def _incline(mu: float, theta_deg: float = 30.0, n_steps: int = 40):
 
 
 @pytest.mark.slow
-def test_incline_sticks_below_and_slides_above_the_friction_angle():
-    t, s, _, c = _incline(mu=0.8)  # tan 30° = 0.577 < 0.8: sticks
+def test_incline_sticks_below_the_friction_angle():
+    """tan 30° = 0.577 < μ = 0.8: the block sticks. IPC's smoothed static friction lets a
+    stuck node slip by less than the tolerance ε per step (f₁(y/ε) = tan θ/μ < 1 gives
+    y ≈ 0.47 ε here), i.e. a creep velocity below ε/h (IPC's ε_v); measured per step once
+    the block has settled on the barrier (t > 0.1 s), and in total."""
+    t, s, _, c = _incline(mu=0.8)
+    eps = float(c.friction.eps)
+    late = t > 0.1
+    slip = np.abs(np.diff(s[late]))
+    assert np.max(slip) <= eps, (np.max(slip), eps)
     assert np.max(np.abs(s)) <= c.dhat, np.max(np.abs(s))
     assert REC.min > 0
+    print(
+        f"incline μ = 0.8: slip per step ≤ {np.max(slip):.2e} m (ε = {eps:.2e} m), "
+        f"total drift {np.max(np.abs(s)):.2e} m (d̂ = {float(c.dhat):.0e} m)"
+    )
+
+
+@pytest.mark.slow
+def test_incline_slides_above_the_friction_angle():
     t, s, a_exact, _ = _incline(mu=0.2)  # slides down: s = −½ a t² (after the transient)
     late = t > 0.1
     a_fit = -2 * np.polyfit(t[late], s[late], 2)[0]
@@ -339,3 +356,185 @@ def test_drop_scene_bounces_and_comes_to_rest(tmp_path):
     weight = 1000.0 * 0.2**3 * 9.81
     assert c["min_distance"] > 0 and summary["dynamic"]["settled"]
     assert abs(c["total_contact_force"][2] - weight) <= 0.01 * weight
+
+
+# ------------------------------------------------------------- κ adaptation in a solve
+def test_kappa_update_rule():
+    from jaxelastic.contact.barrier import kappa_update as up
+
+    k, kmax, dh = jnp.asarray(1.0), jnp.asarray(8.0), 1.0
+    assert float(up(k, kmax, 1e-3, 2e-3, dh)) == 2.0  # below 1e-2·d̂ and closing
+    assert float(up(k, kmax, 2e-3, 1e-3, dh)) == 1.0  # opening
+    assert float(up(k, kmax, 1e-3, 5e-2, dh)) == 1.0  # was not small yet
+    assert float(up(k, kmax, 5e-2, 6e-2, dh)) == 1.0  # not small
+    assert float(up(jnp.asarray(6.0), kmax, 1e-3, 2e-3, dh)) == 8.0  # bounded
+
+
+def test_kappa_adaptation_rescues_an_overloaded_contact():
+    """A float32 block pressed on the ground by a load ~1e5× κ·d̂: with the automatic κ
+    its gap closes towards float32's resolution and Newton stalls (MAX_STEPS); IPC's
+    in-solve doubling of κ (``Newton(kappa_max_factor=100)``) converges, and the adapted
+    κ (``stats["kappa"]``, :func:`je.solvers.contact_potential`) carries the weight."""
+    dt = jnp.float32
+    mesh = je.rectangle(4, 4, size=(1.0, 1.0), origin=(0.0, 5e-4), dtype=dt)
+    mu, lam = je.lame(1e4, 0.3, dim=2)
+    X = np.asarray(mesh.points)
+    bc = je.loads.fix(mesh, np.where(np.abs(X[:, 0] - 0.5) < 1e-6)[0], components=(0,))
+    f = jnp.asarray(je.loads.gravity_load(mesh, 1e6, [0.0, -1.0]), dt)
+    params = je.Lame(jnp.asarray(mu, dt), jnp.asarray(lam, dt))
+    pot = je.Potential(mesh, params, f_ext=f, psi=je.materials.neo_hookean)
+    ground = jc.HalfSpace(jnp.zeros(2, dt), jnp.array([0.0, 1.0], dt))
+    pot = jc.with_contact(pot, [ground], dhat=1e-3)  # automatic κ
+    newton = je.Newton(rtol=1e-6, linear="cg", max_steps=30)
+    fixed = je.solve(pot, bc, solver=newton, throw=False)
+    assert int(fixed.status) == je.Status.MAX_STEPS and "kappa" not in fixed.stats
+    sol = je.solve(pot, bc, solver=newton.replace(kappa_max_factor=100))
+    ratio = float(sol.stats["kappa"] / pot.contact.kappa)
+    assert 2 <= ratio <= 100 and float(pot.contact.min_distance(sol.x)) > 0
+    adapted = je.solvers.contact_potential(pot, sol).contact
+    weight = -float(f[:, 1].sum())
+    total = float(adapted.forces(sol.x).sum(axis=0)[1])
+    assert abs(total - weight) <= 1e-5 * weight, (total, weight)
+    print(
+        f"κ adaptation: {int(fixed.stats['steps'])} steps without (MAX_STEPS), "
+        f"{int(sol.stats['steps'])} with (κ × {ratio:g}); force error {total / weight - 1:.1e}"
+    )
+
+
+# ------------------------------------------------------------------ energy and d̂ → 0
+@pytest.mark.slow
+def test_backward_euler_drop_never_gains_energy():
+    """Frictionless drop on the ground, backward Euler: the total energy (kinetic +
+    elastic + gravity + barrier) never increases from one step to the next (BE
+    dissipates: E_{n+1} − E_n = −½‖Δv‖²_M − ½ΔxᵀHΔx ≤ 0 for a convex step), and no node
+    of any step reaches the ground (the distances of x̃ = x + hv, which the step only
+    probes as a start, may be negative: that start is then rejected)."""
+    mesh = je.rectangle(4, 4, size=(0.2, 0.2), origin=(0.0, 0.02))
+    mu, lam = je.lame(1e5, 0.3, dim=2)
+    mass = jnp.asarray(je.loads.lumped_mass(mesh, 1000.0))
+    f = jnp.asarray(je.loads.gravity_load(mesh, 1000.0, [0.0, -9.81]))
+    base = je.Potential(mesh, je.Lame(mu, lam), f_ext=f, mass=mass, psi=je.materials.neo_hookean)
+    pot = jc.with_contact(base, [jc.HalfSpace(jnp.zeros(2), jnp.array([0.0, 1.0]))], dhat=2e-3)
+    c = pot.contact
+    energies, gaps = [], []
+
+    @jax.jit
+    def total(x, v):
+        st = je.dynamics.init_state(x, v)
+        return je.dynamics.total_energy(base, st) + c.energy(x)
+
+    def cb(state, sol, rec):
+        energies.append(float(total(state.x, state.v)))
+        gaps.append(float(c.min_distance(state.x)))
+
+    energies.append(float(total(mesh.points, jnp.zeros_like(mesh.points))))
+    je.dynamics.simulate(
+        pot, je.dynamics.init_state(mesh.points), je.loads.no_dirichlet(mesh),
+        je.Integrator(h=5e-3), 30, callback=cb, progress=False,
+        solver=je.Newton(rtol=1e-10, linear="cg"),
+    )  # fmt: skip
+    e = np.array(energies)
+    scale = float(np.max(np.abs(e)))
+    rises = np.diff(e)
+    assert np.max(rises) <= 1e-9 * scale, (np.max(rises), scale)
+    assert e[-1] < e[0] - 0.05 * scale  # the impact dissipated energy (it did touch)
+    assert min(gaps) > 0
+    print(
+        f"BE drop: largest step-to-step energy change {np.max(rises) / scale:+.1e} of the "
+        f"scale, lost {(e[0] - e[-1]) / scale:.1%}; min distance {min(gaps):.2e} m"
+    )
+
+
+@pytest.mark.slow
+def test_resting_shape_converges_as_dhat_shrinks():
+    """The static shape of a block resting on the ground converges as d̂ → 0: successive
+    differences ‖x(d̂) − x(d̂/2)‖ shrink at least linearly (measured: order ≈ 2, since the
+    gap at fixed κ closes like κd̂²/F)."""
+    mesh, params = _block(origin=(0.0, 0.05))
+    f = jnp.asarray(je.loads.gravity_load(mesh, 1000.0, [0.0, -9.81]))
+    pot = je.Potential(mesh, params, f_ext=f, psi=je.materials.neo_hookean)
+    ground = jc.HalfSpace(jnp.zeros(2), jnp.array([0.0, 1.0]))
+    c0 = jc.make_contact(pot, [ground], dhat=0.02)
+    X = np.asarray(mesh.points)
+    bc = je.loads.fix(mesh, np.where(np.abs(X[:, 0] - 0.5) < 1e-9)[0], components=(0,))
+    solver = je.Newton(rtol=1e-11, linear="cg")
+    xs, gaps = [], []
+    for dhat in (0.02, 0.01, 0.005, 0.0025):
+        c = c0.replace(dhat=jnp.asarray(dhat))  # same κ, same compiled solve
+        sol = je.solve(pot.replace(contact=c), bc, solver=solver)
+        xs.append(np.asarray(sol.x))
+        gaps.append(float(c.min_distance(sol.x)))
+    diffs = [float(np.max(np.abs(a - b))) for a, b in zip(xs, xs[1:], strict=False)]
+    orders = np.log2(np.array(diffs[:-1]) / np.array(diffs[1:]))
+    assert np.all(orders >= 1.0), (diffs, orders)
+    assert all(0 < g < d for g, d in zip(gaps, (0.02, 0.01, 0.005, 0.0025), strict=True))
+    print(
+        f"resting block, d̂ = 0.02 … 0.0025: successive max differences {diffs}, "
+        f"orders {np.round(orders, 2).tolist()}, gaps {gaps}"
+    )
+
+
+# ------------------------------------------------------------------------------ outputs
+def test_scene_vtu_has_contact_force_and_gap_and_summary_has_contact(tmp_path):
+    """A 2D block pushed down onto a half-space (static, 2 load steps): the VTU gets the
+    point fields ``contact_force`` (= −∂Π_c/∂x, summing to the reaction) and ``gap``
+    (every node's distance to the ground), summary.json the run's minimum distance and
+    the total contact force."""
+    import meshio
+    from _common import scene_toml
+
+    from jaxelastic.scene import run_scene
+
+    scene = {
+        "name": "pressed",
+        "mesh": {"generator": "rectangle", "n": [4, 2], "size": [1.0, 0.5],
+                 "origin": [0.0, 0.01]},
+        "material": {"model": "neo_hookean", "E": 1e4, "nu": 0.3},
+        "dirichlet": [{"nodes": {"plane": {"axis": "y", "value": 0.51}},
+                       "displacement": [0.0, -0.02]}],
+        "obstacle": [{"plane": {"point": [0.0, 0.0], "normal": [0.0, 1.0]}}],
+        "contact": {"dhat": 0.005},
+        "integrator": {"type": "static", "load_steps": 2},
+        "output": {"png": False},
+    }  # fmt: skip
+    path = tmp_path / "pressed.toml"
+    path.write_text(scene_toml(scene))
+    summary = run_scene(str(path), tmp_path / "out", progress=False)
+    c = summary["contact"]
+    vtu = sorted((tmp_path / "out").rglob("static_0000.vtu"))
+    assert vtu, list((tmp_path / "out").rglob("*"))
+    m = meshio.read(vtu[0])
+    f, gap = m.point_data["contact_force"], m.point_data["gap"]
+    y = m.points[:, 1] + m.point_data["displacement"][:, 1]
+    np.testing.assert_allclose(gap, y, rtol=1e-9, atol=1e-12)  # the ground is y = 0
+    assert f.shape == (m.points.shape[0], 3) and np.all(f[:, 1] >= 0)
+    assert np.all(f[gap >= 0.005] == 0) and np.any(f[:, 1] > 0)
+    np.testing.assert_allclose(f[:, :2].sum(axis=0), c["total_contact_force"], rtol=1e-9)
+    assert 0 < c["min_distance"] <= float(gap.min()) + 1e-15 < 0.005
+
+
+@pytest.mark.slow
+def test_gradient_through_a_kappa_adapted_solve():
+    """The implicit derivatives use the κ the solve ended with (``stats["kappa"]``):
+    d loss/dE through an adapted solve (κ × 8) matches central differences taken where
+    the adaptation path is the same (measured 7e-10)."""
+    mesh = je.rectangle(4, 4, size=(1.0, 1.0), origin=(0.0, 0.0005))
+    X = np.asarray(mesh.points)
+    bc = je.loads.fix(mesh, np.where(np.abs(X[:, 0] - 0.5) < 1e-9)[0], components=(0,))
+    f = jnp.asarray(je.loads.gravity_load(mesh, 1e5, [0.0, -1.0]))
+    mu, lam = je.lame(1e4, 0.3, dim=2)
+    pot = je.Potential(mesh, je.Lame(mu, lam), f_ext=f, psi=je.materials.neo_hookean)
+    pot = jc.with_contact(pot, [jc.HalfSpace(jnp.zeros(2), jnp.array([0.0, 1.0]))], dhat=1e-3)
+    solver = je.Newton(rtol=1e-11, linear="cg", kappa_max_factor=100)
+
+    def loss(E):
+        m, lm = je.lame(E, 0.3, dim=2)
+        sol = je.solve(pot.replace(params=je.Lame(m, lm)), bc, solver=solver)
+        return jnp.sum(sol.x[:, 1] ** 2), sol.stats["kappa"]
+
+    E0, h = 1e4, 0.1
+    g = float(jax.grad(lambda E: loss(E)[0])(E0))
+    (lp, kp), (lm_, km) = loss(E0 + h), loss(E0 - h)
+    assert float(kp) == float(km) == float(loss(E0)[1]) > float(pot.contact.kappa)
+    fd = float((lp - lm_) / (2 * h))
+    assert abs(g - fd) <= 1e-5 * abs(fd), (g, fd)

@@ -202,6 +202,7 @@ def test_grad_wrt_whole_potential_and_bc(beam2):
     assert np.all(np.asarray(gb.values)[~np.asarray(b.bc.mask)] == 0)
 
 
+@pytest.mark.slow  # the host adjoint vs CG: also tests/test_implicit.py
 def test_warm_start_and_direct_solver_agree(beam2):
     """The gradient does not depend on the initial guess nor on the linear solver (matrix-free
     CG inside jit vs the host sparse Cholesky bound outside jit)."""
@@ -277,6 +278,7 @@ def test_fit_E_nu_two_load_cases(beam2):
     assert res.newton_steps.shape == (res.iterations + 1, 2)
 
 
+@pytest.mark.slow  # marker observations: also tests/test_fit_cli.py, notebook 03
 def test_fit_E_nu_markers(beam2):
     """Same, observing only 2 of 27 nodes (7 %): the top node at mid-span and at the tip."""
     b = beam2
@@ -290,7 +292,8 @@ def test_fit_E_nu_markers(beam2):
     assert abs(res.nu / nu_true - 1) <= 1e-3, res.nu
 
 
-@pytest.mark.parametrize("markers", [False, pytest.param(True, marks=pytest.mark.slow)])
+@pytest.mark.slow  # the 3D gradient is checked by test_grad_E_nu[3]
+@pytest.mark.parametrize("markers", [False, True])
 def test_fit_E_nu_3d(beam3, markers):
     """3D box(4,1,1) (24 tets, 20 nodes): full observations, or 2 marker nodes (10 %): the
     top corner at mid-span and at the tip. E off by 3x, nu off by 0.15."""
@@ -367,6 +370,7 @@ def test_fit_with_noise(beam2):
     assert res.loss <= 1e-3
 
 
+@pytest.mark.slow  # loss_hessian: also the Mooney-Rivlin fit below
 def test_identifiability_bending_vs_stretch(beam2):
     """Gauss-Newton Hessian of the loss in (ln E, nu) at the truth: from a single bending
     case nu is nearly confounded with E (plane-strain bending sees ~E/(1-nu^2)); adding a
@@ -616,6 +620,7 @@ def block():
     return Block()
 
 
+@pytest.mark.slow  # user psi: the fit below recovers it to 1e-6
 def test_grad_mooney_rivlin_constants_fd(block):
     """d loss / d(c10, c01) through the solver (implicit adjoint) vs central differences,
     directly on the ψ parameters and through the fitting objective in z."""

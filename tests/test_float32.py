@@ -74,6 +74,7 @@ def test_readme_example_in_float32_matches_float64():
     assert rel_diff(r32.x, r64.x, pot64.mesh.points) <= 1e-5  # 4e-8 measured
 
 
+@pytest.mark.slow  # float32 vs float64: README example and default scene below
 def test_twist_n10_float32_at_rtol_1e_5_matches_float64():
     b32, b64 = twist(10, dtype=F32), twist(10, dtype=F64)
     r32 = je.solve(b32.pot, b32.bc, solver=je.Newton(rtol=1e-5))

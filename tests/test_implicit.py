@@ -376,6 +376,7 @@ def test_checkpoint_step_bounds_forward_mode_residuals(beam):
 # ------------------------------------------------------------------------- fit from motion
 
 
+@pytest.mark.slow  # a TrajectoryCase's gradient vs FD: tests/test_fitting.py
 def test_trajectory_case_recovers_E_from_oscillation():
     """A 2D cantilever bent by a tip load is released (load off, v₀ = 0); 4 frames of its
     first 24 backward-Euler steps identify E from a start off by 3× (same mesh, no noise)."""

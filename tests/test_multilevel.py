@@ -65,6 +65,7 @@ def test_matches_direct_3d_twist():
     np.testing.assert_allclose(res.x, ref.x, rtol=0, atol=1e-10)
 
 
+@pytest.mark.slow  # vmap and gradients of Multilevel: also tests/test_vmap.py
 def test_vmap_over_material_and_gradient(beam):
     """vmap over E gives the separate solves; the implicit gradient (adjoint solve by
     Multilevel.exact) matches a central difference."""

@@ -490,3 +490,69 @@ for lin in ("cg", "direct"):
         assert int(steps) < 20
         # float32 at its floor (F from absolute positions): 2e-4 relative measured
         assert abs(float(tip32) - tip64) < 1e-3 * abs(tip64)
+
+
+# --------------------------------------------------------------------------------------
+# The two Newton drivers: jitted lax.while_loop and the host loop
+# --------------------------------------------------------------------------------------
+
+
+def test_jitted_and_host_newton_drivers_take_the_same_iterates(rect):
+    """``Newton.minimize`` (``_run``: the loop under ``lax.while_loop``, what ``solve`` runs
+    under jit and for device linear solvers) and ``newton.host_minimize`` (the loop in
+    Python over three compiled pieces, what ``solve`` runs for host linear solvers) share
+    ``_iteration_end`` but not their glue. On a solve with line-search cutbacks (a
+    neo-Hookean square whose right edge is turned by 1 rad about its midpoint: too large a
+    Dirichlet motion for one step), both reach every iterate with the same energy,
+    residual, step length and linear iterations, and the same answer and statistics."""
+    from jaxelastic.solvers import newton as N
+
+    def turn(X, theta=1.0):
+        y = X[:, 1] - 0.5
+        return np.stack([-np.sin(theta) * y, (np.cos(theta) - 1.0) * y], axis=1)
+
+    left = L.fix(rect, L.nodes_on_plane(rect, 0, 0.0))
+    bc = L.combine(left, L.fix(rect, L.nodes_on_plane(rect, 0, 1.0), displacement=turn))
+    pot = je.Potential(mesh=rect, params=PARAMS, psi=M.neo_hookean)
+    s = je.solvers.bind_solver(Newton(rtol=1e-10, linear="direct"), rect, bc)
+    x0 = rect.points
+
+    # iterate by iterate: the while_loop's body (jitted) vs the host pieces
+    body = jax.jit(N._iteration, static_argnums=0)
+    c_jit = jax.jit(N._initial_carry, static_argnums=0)(s, pot, bc, x0)
+    c_host, length = N._host_start(s, pot, bc, x0)
+    energies = [float(c_jit["energy"])]
+    while int(c_jit["status"]) == N.RUNNING:
+        assert int(c_host["status"]) == N.RUNNING
+        c_jit = body(s, pot, bc, c_jit, length)
+        Ke, rhs, tol, bn = N._host_system(s, pot, bc, c_host)
+        lin = N._host_linear(s, pot, bc, c_host["x"], Ke, rhs, tol)
+        c_host = N._host_update(s, pot, bc, c_host, length, Ke, bn, lin)
+        k = int(c_jit["k"])
+        assert int(c_host["k"]) == k and int(c_host["status"]) == int(c_jit["status"]), k
+        assert int(c_host["cuts"]) == int(c_jit["cuts"]), k
+        np.testing.assert_allclose(c_host["energy"], c_jit["energy"], rtol=1e-12, err_msg=k)
+        np.testing.assert_allclose(c_host["hist"][k], c_jit["hist"][k], rtol=1e-7, err_msg=k)
+        np.testing.assert_allclose(c_host["x"], c_jit["x"], rtol=0, atol=1e-12, err_msg=k)
+        assert float(c_host["alpha_hist"][k - 1]) == float(c_jit["alpha_hist"][k - 1]), k
+        energies.append(float(c_jit["energy"]))
+    assert int(c_jit["status"]) == Status.SUCCESS and int(c_jit["cuts"]) >= 1
+    # Π rises while the Dirichlet motion is applied (step 1), then decreases
+    assert len(energies) >= 5 and np.all(np.diff(energies[1:-2]) < 0), energies
+
+    # the whole drivers: their Solutions agree field by field
+    a = jax.jit(Newton.minimize, static_argnums=0)(s, pot, bc, x0)
+    b = N.host_minimize(s, pot, bc, x0)
+    assert int(a.status) == int(b.status) == Status.SUCCESS
+    np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.x, c_jit["x"], rtol=0, atol=1e-12)
+    for key in ("steps", "linear_iterations", "line_search_cutbacks", "negative_curvature"):
+        assert int(a.stats[key]) == int(b.stats[key]), key
+    np.testing.assert_array_equal(a.stats["linear_history"], b.stats["linear_history"])
+    np.testing.assert_array_equal(a.stats["step_history"], b.stats["step_history"])
+    np.testing.assert_allclose(b.stats["energy"], a.stats["energy"], rtol=1e-12)
+    n = int(a.stats["steps"]) + 1
+    np.testing.assert_allclose(
+        b.stats["residual_history"][:n], a.stats["residual_history"][:n], rtol=1e-7
+    )
+    assert n == len(energies)

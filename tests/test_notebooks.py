@@ -5,6 +5,12 @@ The kernel is the interpreter running pytest: a throw-away kernel spec (argv
 fresh ``python3 -m venv .venv && pip install -e .[dev]`` works whatever kernels are
 installed globally or per user. Each notebook runs in a temporary working directory, and
 the executed copy is never written back over the source.
+
+A notebook that reads ``JAXELASTIC_NOTEBOOK_FAST`` (``FAST = os.environ.get(FAST_ENV) == "1"``:
+fewer time steps, a smaller grid, fewer fits; every claim still asserted) runs in that mode
+in the default test run and at full size under ``-m slow``; the documentation build
+(``mkdocs build`` in ``.ci/run``) executes every notebook at full size too. A notebook without
+the switch runs at full size in the default run.
 """
 
 from __future__ import annotations
@@ -24,6 +30,20 @@ NOTEBOOK_DIR = ROOT / "notebooks"
 NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
 KERNEL_NAME = "jaxelastic-test-python"
 CELL_TIMEOUT = 600  # seconds, per cell
+FAST_ENV = "JAXELASTIC_NOTEBOOK_FAST"
+
+
+def _params():
+    """``(path, fast)`` per notebook: the fast variant (if it has one) in the default run,
+    the full size under ``-m slow``."""
+    params = []
+    for path in NOTEBOOKS:
+        if FAST_ENV in path.read_text(encoding="utf-8"):
+            params.append(pytest.param(path, True, id=f"{path.stem}-fast"))
+            params.append(pytest.param(path, False, id=path.stem, marks=pytest.mark.slow))
+        else:
+            params.append(pytest.param(path, False, id=path.stem))
+    return params
 
 
 @pytest.fixture(scope="module")
@@ -51,8 +71,8 @@ def _stray_files() -> set[str]:
     }
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
-def test_notebook_executes(path, jupyter_path, tmp_path, monkeypatch):
+@pytest.mark.parametrize(("path", "fast"), _params())
+def test_notebook_executes(path, fast, jupyter_path, tmp_path, monkeypatch):
     # Find our kernel spec first; keep the kernel's connection and IPython files out of
     # $HOME; let ipykernel pick its inline matplotlib backend even if the caller exported a
     # non-interactive one.
@@ -61,6 +81,10 @@ def test_notebook_executes(path, jupyter_path, tmp_path, monkeypatch):
     monkeypatch.setenv("IPYTHONDIR", str(tmp_path / "ipython"))
     monkeypatch.setenv("PYDEVD_DISABLE_FILE_VALIDATION", "1")
     monkeypatch.delenv("MPLBACKEND", raising=False)
+    if fast:
+        monkeypatch.setenv(FAST_ENV, "1")
+    else:
+        monkeypatch.delenv(FAST_ENV, raising=False)
     workdir = tmp_path / "cwd"
     workdir.mkdir()
 
@@ -86,4 +110,4 @@ def test_notebook_executes(path, jupyter_path, tmp_path, monkeypatch):
     assert not errors, errors
     assert path.read_bytes() == source, "the source notebook was modified"
     assert _stray_files() == before, "the notebook wrote files into notebooks/"
-    print(f"{path.name}: executed in {elapsed:.1f} s")
+    print(f"{path.name}{' (fast)' if fast else ''}: executed in {elapsed:.1f} s")

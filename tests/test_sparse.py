@@ -533,3 +533,39 @@ def test_calls_are_serialised():
         t.join()
     assert not errors and peak[0] == 1
     assert (host.calls, host.factorizations, host.applications) == (9, 5, 4)
+
+
+_RSS_SCRIPT = """
+import json, resource, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import jaxelastic as je
+from jaxelastic import benchmarks
+b = benchmarks.twist(int(sys.argv[1]))
+newton = je.Newton(rtol=1e-8, linear=je.solvers.bind_linear("direct", b.mesh, b.bc))
+for _ in range(2):  # cold and warm, as a scene's static solve then a time step
+    r = je.solve(b.pot, b.bc, solver=newton, throw=False)
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+print(json.dumps(dict(status=int(r.status), peak=peak)))
+"""
+
+
+@pytest.mark.slow
+def test_memory_estimate_matches_measured_peak():
+    """:func:`jaxelastic.scene.memory.estimate_parts` is within 1.5× of the measured peak
+    RSS of a twist solve (n = 14: 16k tets, 10k dofs, direct) in a fresh process."""
+    import json
+    import subprocess
+    import sys
+
+    from jaxelastic.scene import memory
+
+    n = 14
+    out = subprocess.run(
+        [sys.executable, "-c", _RSS_SCRIPT, str(n)], capture_output=True, text=True, check=True
+    )
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["status"] == 0
+    size = memory.MeshSize((n + 1) ** 3, 6 * n**3, 3, "tet4", 4, 1, "twist")
+    est = sum(memory.estimate_parts(size, linear="direct").values())
+    assert r["peak"] / 1.5 <= est <= 1.5 * r["peak"], (est / 2**20, r["peak"] / 2**20)

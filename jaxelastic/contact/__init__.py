@@ -6,14 +6,20 @@ Contact", ACM TOG 39(4)), as one more term of the potential Newton minimises.
 * :mod:`~jaxelastic.contact.friction`: lagged smoothed Coulomb friction;
 * :mod:`~jaxelastic.contact.ccd`: the intersection-free line-search bound;
 * :mod:`~jaxelastic.contact.term`: the :class:`Contact` term held by ``Potential.contact``;
-* :mod:`~jaxelastic.contact.setup`: :func:`make_contact` (automatic d̂, κ), :func:`adapt`.
-
-Self-contact (point–triangle, edge–edge, broad phase) is not implemented yet.
+* :mod:`~jaxelastic.contact.setup`: :func:`make_contact` (automatic d̂, κ), :func:`adapt`;
+* self-contact: :mod:`~jaxelastic.contact.distance` (point–triangle, edge–edge with the
+  parallel-edge mollifier, 2D point–edge), :mod:`~jaxelastic.contact.broadphase` (host
+  spatial hash), :mod:`~jaxelastic.contact.pairs` (:class:`SelfContact`, the pair barrier)
+  and additive CCD (:func:`~jaxelastic.contact.ccd.additive_toi`).
 """
 
 from .barrier import barrier as barrier
 from .barrier import barrier_d1 as barrier_d1
 from .barrier import barrier_d2 as barrier_d2
+from .broadphase import Surface as Surface
+from .broadphase import candidate_pairs as candidate_pairs
+from .broadphase import surface_of as surface_of
+from .ccd import additive_toi as additive_toi
 from .ccd import ccd_step as ccd_step
 from .friction import FrictionLag as FrictionLag
 from .obstacles import SDF as SDF
@@ -23,6 +29,8 @@ from .obstacles import HalfSpace as HalfSpace
 from .obstacles import Obstacle as Obstacle
 from .obstacles import RotatedBox as RotatedBox
 from .obstacles import Sphere as Sphere
+from .pairs import SelfContact as SelfContact
+from .pairs import make_self_contact as make_self_contact
 from .setup import adapt as adapt
 from .setup import auto_kappa as auto_kappa
 from .setup import contact_nodes as contact_nodes
@@ -34,6 +42,10 @@ __all__ = [
     "barrier",
     "barrier_d1",
     "barrier_d2",
+    "Surface",
+    "candidate_pairs",
+    "surface_of",
+    "additive_toi",
     "ccd_step",
     "FrictionLag",
     "SDF",
@@ -43,6 +55,8 @@ __all__ = [
     "Obstacle",
     "RotatedBox",
     "Sphere",
+    "SelfContact",
+    "make_self_contact",
     "adapt",
     "auto_kappa",
     "contact_nodes",

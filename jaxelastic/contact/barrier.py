@@ -8,7 +8,12 @@ energy ``κ Σ b`` needs κ in [N/m] — a stiffness, which :func:`kappa_from_st
 takes from the elastic Hessian (IPC §4.3 balances the barrier against the elasticity;
 here κ equals the mean diagonal node stiffness of the elastic + inertia Hessian, so the
 barrier's curvature at ``d = d̂/2``, 6.4 κ, is of the order of the body's own).
-:func:`adapt_kappa` doubles κ when a gap gets too small (IPC's adaptive κ update).
+:func:`adapt_kappa` doubles κ when a gap gets too small (IPC's adaptive κ update, between
+steps); :func:`kappa_update` is the same rule inside a Newton solve, applied by
+:class:`~jaxelastic.solvers.newton.Newton` after every iteration (IPC's rule as in the
+ipc-toolkit's ``update_barrier_stiffness``: double κ while the smallest gap is below the
+threshold and still shrinking between consecutive iterates, at most to
+``KAPPA_MAX_FACTOR`` × the starting κ).
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ __all__ = [
     "kappa_from_stiffness",
     "adapt_kappa",
     "SMALL_GAP",
+    "KAPPA_MAX_FACTOR",
+    "kappa_update",
 ]
 
 DHAT_REL = 1e-3
@@ -32,6 +39,10 @@ DHAT_REL = 1e-3
 
 SMALL_GAP = 1e-2
 """:func:`adapt_kappa` doubles κ once the smallest gap falls below this fraction of d̂."""
+
+KAPPA_MAX_FACTOR = 100.0
+"""Default bound of the in-solve κ adaptation (:func:`kappa_update`): κ ≤ 100 × its
+starting value (as IPC's ``κ_max = 100 κ_min``: ipc-toolkit ``initial_barrier_stiffness``)."""
 
 
 def _inside(d, dhat):
@@ -82,3 +93,26 @@ def adapt_kappa(kappa, min_gap, dhat, max_kappa=None):
     small = (min_gap > 0) & (min_gap < SMALL_GAP * dhat)
     k2 = 2.0 * kappa if max_kappa is None else jnp.minimum(2.0 * kappa, max_kappa)
     return jnp.where(small, k2, kappa)
+
+
+def kappa_update(kappa, kappa_max, gap, prev_gap, dhat):
+    """IPC's adaptive barrier stiffness inside a solve (Li et al. 2020 §4.3 and
+    supplementary; ipc-toolkit ``update_barrier_stiffness``): ``min(2κ, κ_max)`` when the
+    smallest gap is below ``SMALL_GAP·d̂`` at this iterate *and* the previous one and still
+    shrinking (``0 < gap < prev_gap``), else κ.
+
+    A gap that keeps closing means the barrier is too soft for the load it carries: the
+    iterates approach d = 0, where b'' ~ d̂²/d² makes Newton's system ill-conditioned and
+    the contact force inaccurate; doubling κ moves the equilibrium gap out by about the
+    same factor. Bounded, so a solve changes κ at most ``log2(κ_max/κ)`` times.
+
+    Args:
+        kappa, kappa_max: ``()`` current and largest stiffness [N/m]; gap, prev_gap: ``()``
+            smallest node–obstacle distance now and at the previous iterate [m]; dhat: d̂ [m].
+
+    Returns:
+        ``()`` the new κ [N/m] (jit-able).
+    """
+    thr = SMALL_GAP * dhat
+    closing = (gap > 0) & (gap < thr) & (prev_gap < thr) & (gap < prev_gap)
+    return jnp.where(closing, jnp.minimum(2.0 * kappa, jnp.maximum(kappa_max, kappa)), kappa)

@@ -1,5 +1,6 @@
 """Building a :class:`~jaxelastic.contact.term.Contact` for a potential: contact nodes,
-automatic d̂ and κ, friction on/off, and the adaptive κ update between steps."""
+automatic d̂ and κ, friction on/off, self-contact, and the adaptive κ update between
+steps."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from ..mesh import boundary_nodes
 from ..potential import Potential, elastic_element_hessians, node_hessian_blocks
 from .barrier import adapt_kappa, default_dhat, kappa_from_stiffness
 from .friction import EPS_REL
+from .pairs import make_self_contact
 from .term import Contact
 
 __all__ = ["make_contact", "with_contact", "contact_nodes", "auto_kappa", "adapt"]
@@ -40,8 +42,10 @@ def _kappa(base: Potential, nodes):
 
 def make_contact(
     pot: Potential,
-    obstacles: Sequence,
+    obstacles: Sequence = (),
     *,
+    self_contact: bool = False,
+    margin=None,
     nodes=None,
     dhat=None,
     kappa=None,
@@ -53,7 +57,12 @@ def make_contact(
 
     Args:
         pot: the potential (its mesh, material and masses set κ).
-        obstacles: obstacles (:mod:`~jaxelastic.contact.obstacles`), at least one.
+        obstacles: obstacles (:mod:`~jaxelastic.contact.obstacles`); at least one unless
+            ``self_contact``.
+        self_contact: also barrier contact between the body's own boundary primitives
+            (:mod:`~jaxelastic.contact.pairs`; broad phase at the rest shape). Friction is
+            not applied to self-contact pairs.
+        margin: self-contact motion bound [m] (default ``MARGIN_DHAT·d̂`` = 10 d̂).
         nodes: ``(m,)`` contact nodes (default: every boundary node).
         dhat: barrier reach [m] (default 1e-3 × the rest bounding-box diagonal).
         kappa: barrier stiffness [N/m] (default :func:`auto_kappa`).
@@ -63,18 +72,29 @@ def make_contact(
         t: initial obstacle time [s].
 
     Raises:
-        ValueError: no obstacle, or a contact node inside an obstacle at the rest shape.
+        ValueError: no obstacle and no self-contact, a contact node inside an obstacle at
+            the rest shape, or two boundary primitives touching at the rest shape.
     """
     obstacles = tuple(obstacles)
-    if not obstacles:
-        raise ValueError("make_contact needs at least one obstacle")
+    if not obstacles and not self_contact:
+        raise ValueError("make_contact needs at least one obstacle or self_contact=True")
     X = pot.mesh.points
     dt = X.dtype
     nodes = jnp.asarray(contact_nodes(pot.mesh) if nodes is None else nodes, jnp.int32)
     dhat = default_dhat(X) if dhat is None else jnp.asarray(dhat, dt)
     kappa = auto_kappa(pot, nodes) if kappa is None else jnp.asarray(kappa, dt)
     c = Contact(nodes, obstacles, jnp.asarray(dhat, dt), jnp.asarray(kappa, dt), jnp.asarray(t, dt))
-    dmin = float(c.min_distance(X))
+    if self_contact:
+        sc = make_self_contact(pot.mesh, c.dhat, margin)
+        dself = float(sc.min_distance(X))
+        if not dself > 0:
+            raise ValueError(
+                f"make_contact: two boundary primitives of the body touch at the rest shape "
+                f"(distance {dself:.3g} m); self-contact needs a surface that is apart from "
+                "itself except where primitives share a node"
+            )
+        c = c.replace(self_contact=sc)
+    dmin = float(jnp.min(c.distances(X), initial=jnp.inf))
     if not dmin > 0:
         raise ValueError(
             f"make_contact: a contact node is inside an obstacle at the rest shape (min "
@@ -82,19 +102,20 @@ def make_contact(
         )
     if friction is None:
         friction = any(float(jnp.asarray(ob.friction)) > 0 for ob in obstacles)
-    if friction:
+    if friction and obstacles:
         eps = EPS_REL * float(default_dhat(X, 1.0)) if eps is None else eps
         c = c.lag(X, eps=eps)
     return c
 
 
-def with_contact(pot: Potential, obstacles: Sequence, **kw) -> Potential:
+def with_contact(pot: Potential, obstacles: Sequence = (), **kw) -> Potential:
     """``pot`` with a contact term (:func:`make_contact`, same keywords)."""
     return pot.replace(contact=make_contact(pot, obstacles, **kw))
 
 
 def adapt(contact: Contact, x: jax.Array, max_kappa=None) -> Contact:
-    """``contact`` with κ doubled if the smallest gap at ``x`` is below 1e-2·d̂
+    """``contact`` with κ doubled if the smallest gap (obstacles and self-contact) at
+    ``x`` is below 1e-2·d̂
     (:func:`~jaxelastic.contact.barrier.adapt_kappa`); jit-able."""
     k = adapt_kappa(contact.kappa, contact.min_distance(x), contact.dhat, max_kappa)
     return contact.replace(kappa=k)

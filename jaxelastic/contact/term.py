@@ -1,4 +1,5 @@
-"""The contact term of the potential: barrier (+ lagged friction) on boundary nodes.
+"""The contact term of the potential: barrier (+ lagged friction) on boundary nodes, and
+self-contact between boundary primitives.
 
 :class:`Contact` is a frozen pytree held by :class:`~jaxelastic.potential.Potential`
 (``contact=None`` by default: then nothing of this module is traced). For contact nodes
@@ -14,6 +15,14 @@ where it is ``κ b''(d) n nᵀ``; around a convex obstacle the tangential eigenv
 ``κ b'(d)/ρ`` is negative). :meth:`Contact.add_hessian_blocks` adds each block to one
 element containing the node, so the element-Hessian array the solvers already take
 (CG's block Jacobi, the host Cholesky / AMG, the device multigrid) carries contact too.
+
+Self-contact (``self_contact``, :mod:`~jaxelastic.contact.pairs`) adds
+``κ Σ_pairs [m] b(d_pair)``. A pair's ``(q·dim)²`` Hessian couples 3–4 nodes of different
+elements, so it takes two routes: its node-diagonal blocks are folded into the element
+Hessians like the obstacle blocks (every preconditioner and factorisation sees them), and
+the rest, which couples different nodes, is the matrix-free :meth:`Contact.coupling`
+operator that Newton adds to its Hessian operator (so CG-type solves, including the
+host ones used as preconditioners, see the whole Hessian; see docs/guide/contact.md).
 """
 
 from __future__ import annotations
@@ -23,13 +32,19 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..energy import project_psd
 from .barrier import barrier, barrier_d1
 from .ccd import ccd_step, safe_norm
 from .friction import FrictionLag, friction_node_energy, tangent_basis
+from .pairs import SelfContact
 
-__all__ = ["Contact"]
+__all__ = ["Contact", "STEP_MARGIN_MAX"]
+
+STEP_MARGIN_MAX = 4.0
+"""A broad phase over a Newton step takes a motion bound of at most this multiple of the
+default one (the candidate count grows like its cube)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +58,8 @@ class Contact:
         kappa: ``()`` barrier stiffness κ [N/m].
         t: ``()`` time at which the obstacles' prescribed motion is evaluated [s].
         friction: :class:`~jaxelastic.contact.friction.FrictionLag` or None (frictionless).
+        self_contact: :class:`~jaxelastic.contact.pairs.SelfContact` or None (no
+            self-contact; then ``obstacles`` must not be empty).
 
     Build one with :func:`~jaxelastic.contact.make_contact` (automatic κ, d̂).
     """
@@ -53,6 +70,7 @@ class Contact:
     kappa: jax.Array
     t: jax.Array
     friction: FrictionLag | None = None
+    self_contact: SelfContact | None = None
 
     def replace(self, **kw) -> Contact:
         return dataclasses.replace(self, **kw)
@@ -60,22 +78,33 @@ class Contact:
     # -- geometry --------------------------------------------------------------------
     def offsets(self) -> jax.Array:
         """``(n_obs, dim)`` obstacle translations at :attr:`t` [m]."""
+        if not self.obstacles:
+            d = 0 if self.self_contact is None else self.self_contact.rest.shape[1]
+            return jnp.zeros((0, d), self.dhat.dtype)
         return jnp.stack([ob.offset(self.t) for ob in self.obstacles])
 
     def mu(self) -> jax.Array:
         """``(n_obs,)`` friction coefficients."""
+        if not self.obstacles:
+            return jnp.zeros((0,), self.dhat.dtype)
         return jnp.stack([jnp.asarray(ob.friction, self.dhat.dtype) for ob in self.obstacles])
 
     def distances(self, x: jax.Array) -> jax.Array:
         """``(n_obs, m)`` signed distances [m] of the contact nodes of ``x`` ``(n, dim)``."""
         xn = x[self.nodes]
+        if not self.obstacles:
+            return jnp.zeros((0, xn.shape[0]), x.dtype)
         return jnp.stack(
             [jax.vmap(lambda p, ob=ob: ob.distance(p, self.t))(xn) for ob in self.obstacles]
         )
 
     def min_distance(self, x: jax.Array) -> jax.Array:
-        """Smallest node–obstacle distance [m] (≤ 0: penetration)."""
-        return jnp.min(self.distances(x))
+        """Smallest node–obstacle or (self-contact) pair distance [m] (≤ 0: penetration;
+        +inf with neither in reach)."""
+        d = jnp.min(self.distances(x), initial=jnp.inf)
+        if self.self_contact is not None:
+            d = jnp.minimum(d, self.self_contact.min_distance(x))
+        return d
 
     # -- energy and derivatives ------------------------------------------------------
     def _node_data(self):
@@ -101,49 +130,126 @@ class Contact:
         return jax.vmap(fn)(x[self.nodes], self._node_data())
 
     def energy(self, x: jax.Array) -> jax.Array:
-        """Π_c(x) [J] for ``x`` ``(n, dim)``; +inf if a node is inside an obstacle."""
-        return jnp.sum(self._per_node(self._node_energy, x))
+        """Π_c(x) [J] for ``x`` ``(n, dim)``; +inf if a node is inside an obstacle or a
+        self-contact pair touches."""
+        e = jnp.zeros((), x.dtype)
+        if self.obstacles:
+            e = e + jnp.sum(self._per_node(self._node_energy, x))
+        if self.self_contact is not None:
+            e = e + self.self_contact.energy(x, self.dhat, self.kappa)
+        return e
 
     def _scatter(self, x, g):
         return jnp.zeros_like(x).at[self.nodes].add(g)
 
+    def _self_gradient(self, x):
+        return self.self_contact.gradient(x, self.dhat, self.kappa)  # type: ignore[union-attr]
+
     def gradient(self, x: jax.Array) -> jax.Array:
         """∂Π_c/∂x ``(n, dim)`` [N] (zero off the contact nodes)."""
-        return self._scatter(x, self._per_node(jax.grad(self._node_energy), x))
+        g = jnp.zeros_like(x)
+        if self.obstacles:
+            g = self._scatter(x, self._per_node(jax.grad(self._node_energy), x))
+        if self.self_contact is not None:
+            g = g + self._self_gradient(x)
+        return g
 
     def forces(self, x: jax.Array, friction: bool = True) -> jax.Array:
         """Contact forces on the nodes ``−∂Π_c/∂x`` ``(n, dim)`` [N] (barrier only if not
-        ``friction``)."""
-        fn = jax.grad(lambda xa, d: self._node_energy(xa, d, friction))
-        return -self._scatter(x, self._per_node(fn, x))
+        ``friction``); self-contact forces included (they sum to zero)."""
+        f = jnp.zeros_like(x)
+        if self.obstacles:
+            fn = jax.grad(lambda xa, d: self._node_energy(xa, d, friction))
+            f = -self._scatter(x, self._per_node(fn, x))
+        if self.self_contact is not None:
+            f = f - self._self_gradient(x)
+        return f
 
     def node_hessians(self, x: jax.Array, project: bool = True) -> jax.Array:
-        """``(m, dim, dim)`` Hessian blocks of Π_c per contact node (PSD-projected if
-        ``project``)."""
+        """``(m, dim, dim)`` Hessian blocks of the obstacle term per contact node
+        (PSD-projected if ``project``)."""
         H = self._per_node(jax.hessian(self._node_energy), x)
         return project_psd(H) if project else H
 
     def hvp(self, x: jax.Array, v: jax.Array, exact: bool = False) -> jax.Array:
         """``(∂²Π_c/∂x²) v`` ``(n, dim)``: with the projected blocks, or exact."""
-        H = self.node_hessians(x, project=not exact)
-        return self._scatter(x, jnp.einsum("mij,mj->mi", H, v[self.nodes]))
+        Hv = jnp.zeros_like(v)
+        if self.obstacles:
+            H = self.node_hessians(x, project=not exact)
+            Hv = self._scatter(x, jnp.einsum("mij,mj->mi", H, v[self.nodes]))
+        if self.self_contact is not None:
+            Hv = Hv + self.self_contact.hvp(x, v, self.dhat, self.kappa, project=not exact)
+        return Hv
+
+    def coupling(self, x: jax.Array, exact: bool = False):
+        """The self-contact Hessian's coupling of different nodes as ``v ↦ H_c v``
+        (``(n, dim) -> (n, dim)``; projected pair Hessians unless ``exact``), or None
+        without self-contact. Newton adds it to the element-Hessian operator, whose
+        :meth:`add_hessian_blocks` hold the node-diagonal rest."""
+        if self.self_contact is None:
+            return None
+        return self.self_contact.coupling(x, self.dhat, self.kappa, project=not exact)
 
     def add_hessian_blocks(self, Ke: jax.Array, mesh: Any, x: jax.Array, project: bool = True):
-        """``Ke`` ``(n_cells, k·d, k·d)`` with each contact node's block added to the
-        diagonal block of the first element containing it (``mesh.incidence``)."""
+        """``Ke`` ``(n_cells, k·d, k·d)`` with each contact node's block (obstacles, and
+        the node-diagonal blocks of the self-contact pair Hessians) added to the diagonal
+        block of the first element containing it (``mesh.incidence``)."""
         c, k = mesh.cells.shape
         d = x.shape[1]
-        slot = mesh.incidence[self.nodes, 0]  # flat cell·k + local slot
-        cell, loc = slot // k, slot % k
         K4 = Ke.reshape(c, k, d, k, d)
-        H = self.node_hessians(x, project).astype(Ke.dtype)
-        return K4.at[cell, loc, :, loc, :].add(H).reshape(Ke.shape)
+        if self.obstacles:
+            slot = mesh.incidence[self.nodes, 0]  # flat cell·k + local slot
+            cell, loc = slot // k, slot % k
+            H = self.node_hessians(x, project).astype(Ke.dtype)
+            K4 = K4.at[cell, loc, :, loc, :].add(H)
+        sc = self.self_contact
+        if sc is not None:
+            slot = mesh.incidence[sc.nodes, 0]
+            cell, loc = slot // k, slot % k
+            B = sc.node_blocks(x, self.dhat, self.kappa, project)[sc.nodes].astype(Ke.dtype)
+            K4 = K4.at[cell, loc, :, loc, :].add(B)
+        return K4.reshape(Ke.shape)
 
     # -- line search, lagging, time --------------------------------------------------
     def ccd_step(self, x: jax.Array, step: jax.Array) -> jax.Array:
         """Largest safe initial step α₀ ∈ (0, 1] along ``step`` ``(n, dim)`` [m]
         (:func:`~jaxelastic.contact.ccd.ccd_step`)."""
-        return ccd_step(self.obstacles, x[self.nodes], step[self.nodes], self.t)
+        a = ccd_step(self.obstacles, x[self.nodes], step[self.nodes], self.t)
+        if self.self_contact is not None:
+            a = jnp.minimum(a, self.self_contact.ccd_step(x, step))
+            a = jnp.maximum(a, jnp.finfo(x.dtype).tiny)
+        return a
+
+    # -- self-contact broad phase (host) -----------------------------------------------
+    def refreshed(self, x, step=None, force: bool = False) -> Contact:
+        """(host, concrete arrays) This contact with the self-contact broad phase re-run
+        at ``x`` ``(n, dim)`` if a surface node has used half its motion bound (or
+        ``force``, or a ``step`` ``(n, dim)`` [m] — the next Newton step — would leave
+        it): the new bound is ``max(base_margin, 1.1·max_a ‖step_a‖)``, at most
+        ``STEP_MARGIN_MAX·base_margin`` (a longer step is cut by the bound). Unchanged
+        without self-contact."""
+        sc = self.self_contact
+        if sc is None:
+            return self
+        m0 = float(sc.base_margin)
+        margin = m0
+        if step is not None:
+            s = np.asarray(step)[np.asarray(sc.nodes)]
+            smax = float(np.max(np.sqrt(np.sum(s * s, axis=1)), initial=0.0))
+            margin = min(max(m0, 1.1 * smax), STEP_MARGIN_MAX * m0)
+            xh = np.asarray(x)
+            u = xh[np.asarray(sc.nodes)] - np.asarray(sc.x_ref)
+            um = float(np.max(np.sqrt(np.sum(u * u, axis=1)), initial=0.0))
+            force = force or um + margin / 1.1 > float(sc.margin)
+        if not (force or sc.needs_refresh(x)):
+            return self
+        return self.replace(self_contact=sc.refreshed(x, self.dhat, margin))
+
+    def outran(self, x) -> bool:
+        """(host) Whether a solve ending at ``x`` may have been held back by the
+        self-contact motion bound (a surface node moved half of it)."""
+        sc = self.self_contact
+        return sc is not None and sc.needs_refresh(x)
 
     def normal_forces(self, x: jax.Array) -> jax.Array:
         """``(n_obs, m)`` barrier normal-force magnitudes κ|b'(d)| [N]."""
@@ -153,6 +259,8 @@ class Contact:
         """This contact with friction lagged at ``x`` (normal forces, tangent bases,
         positions and obstacle translations now); ``eps`` [m] the slip tolerance (default:
         the current one, else 1e-2·d̂)."""
+        if not self.obstacles:
+            return self
         xn = x[self.nodes]
         bases = []
         for ob in self.obstacles:
@@ -188,6 +296,6 @@ class Contact:
 
 jax.tree_util.register_dataclass(
     Contact,
-    data_fields=["nodes", "obstacles", "dhat", "kappa", "t", "friction"],
+    data_fields=["nodes", "obstacles", "dhat", "kappa", "t", "friction", "self_contact"],
     meta_fields=[],
 )

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -59,6 +60,9 @@ class Mesh:
             (F̄ = (J̄/J)^{1/d} F with J̄ the cell average of J, see
             :func:`~jaxelastic.kinematics.deformation_gradients`), or ``"bbar"`` (its
             small-strain analogue for small-strain materials, Hughes 1980).
+        halo: a :class:`~jaxelastic.mesh.halo.Halo` when the mesh is sharded over devices
+            (:func:`jaxelastic.shard`: the energy kernels then run per shard under
+            ``shard_map`` and exchange interface nodes only), else None.
     """
 
     points: jax.Array
@@ -66,6 +70,7 @@ class Mesh:
     dN: jax.Array
     weights: jax.Array
     incidence: jax.Array
+    halo: Any = None
     element: str = dataclasses.field(metadata=dict(static=True), default="tri3")
     formulation: str = dataclasses.field(metadata=dict(static=True), default="standard")
 
@@ -104,7 +109,7 @@ class Mesh:
 
 jax.tree_util.register_dataclass(
     Mesh,
-    data_fields=["points", "cells", "dN", "weights", "incidence"],
+    data_fields=["points", "cells", "dN", "weights", "incidence", "halo"],
     meta_fields=["element", "formulation"],
 )
 

@@ -44,6 +44,7 @@ from ..mesh import (
 from ..mesh.elements import edge_table
 from ..potential import Potential
 from ..solvers import CG, Newton, bind_solver
+from ..solvers.newton import is_quadratic
 from . import memory
 from .callables import CallableSpecError, import_callable, n_positional
 from .contact import build_contact
@@ -69,6 +70,9 @@ __all__ = [
     "select_facets",
     "scene_dtype",
     "linear_solver_name",
+    "Sharded",
+    "check_devices",
+    "padded_dirichlet",
 ]
 
 
@@ -112,6 +116,36 @@ class Built(NamedTuple):
     v0: jax.Array | None
     probes: list
     tip: int
+    shard: Sharded | None = None
+
+
+class Sharded(NamedTuple):
+    """The solve-side arrays of a scene with ``[solver] devices = N > 1``
+    (:func:`jaxelastic.shard`): the same problem renumbered into the global padded layout
+    and placed on N devices. :class:`Built`'s other fields stay in the natural numbering
+    (outputs, probes, VTU); a run solves with these and maps the solution back with
+    ``partition.to_natural``.
+
+    Attributes:
+        potential: the sharded :class:`~jaxelastic.potential.Potential` (padded nodes and
+            cells); bc: its Dirichlet data at the full load (statics) or t = 0;
+        bc_fn: ``s ↦`` sharded Dirichlet data (as :attr:`Built.bc_fn`);
+        solver: the Newton solver bound to the sharded mesh;
+        x0: ``(S·n_own, dim)`` padded rest positions; v0: padded initial velocities or None;
+        partition: the :class:`~jaxelastic.mesh.partition.Partition`;
+        devices: the devices used (``str`` of each);
+        rest: ``(S·n_own, dim)`` NumPy padded rest positions (where padded nodes are fixed).
+    """
+
+    potential: Potential
+    bc: Dirichlet
+    bc_fn: Callable[[float], Dirichlet]
+    solver: Newton
+    x0: jax.Array
+    v0: jax.Array | None
+    partition: Any
+    devices: tuple
+    rest: np.ndarray
 
 
 # ----------------------------------------------------------------------------------------
@@ -714,6 +748,94 @@ def _probes(scene: Scene, X: np.ndarray) -> list:
 
 
 # ----------------------------------------------------------------------------------------
+# [solver] devices: sharding
+# ----------------------------------------------------------------------------------------
+
+HOST_DEVICES_FLAG = "--xla_force_host_platform_device_count"
+"""The XLA flag that splits the host CPU into N devices (set in ``XLA_FLAGS`` before JAX
+starts)."""
+
+
+def check_devices(n: int) -> list:
+    """The first ``n`` devices JAX sees (``jax.devices()``, every process's in a
+    multi-process run).
+
+    Raises:
+        ValueError: fewer than ``n`` devices, with how to get more (the XLA flag for host
+            CPU devices, or one process per GPU under ``jax.distributed``).
+    """
+    devs = jax.devices()
+    if len(devs) < n:
+        kind = devs[0].platform
+        raise ValueError(
+            f"{n} devices asked for, but JAX sees {len(devs)} ({kind}): for host CPU devices "
+            f"start with XLA_FLAGS={HOST_DEVICES_FLAG}={n} in the environment (before JAX "
+            "starts); for several GPUs or hosts, launch one process per device and call "
+            "jaxelastic.distributed.initialize_from_env() (see the guide 'Many devices and "
+            "hosts')"
+        )
+    return list(devs[:n])
+
+
+def padded_dirichlet(sh: Sharded, bc: Dirichlet) -> Dirichlet:
+    """Natural Dirichlet data ``bc`` in the padded layout of a sharded scene, placed like
+    its ``sh.bc``: padded nodes fixed at their rest position."""
+    return _padded_dirichlet(sh.partition, bc, sh.rest, sh.bc)
+
+
+def _padded_dirichlet(part, bc: Dirichlet, X_pad: np.ndarray, like: Dirichlet) -> Dirichlet:
+    """Natural Dirichlet data in the padded layout of ``part``, placed like ``like``:
+    padded nodes fixed at their rest position ``X_pad`` (their place in the layout)."""
+    real = np.asarray(part.node_real)[:, None]
+    mask = np.asarray(part.to_padded(np.asarray(bc.mask)))
+    values = np.asarray(part.to_padded(np.asarray(bc.values)))
+    mask = np.where(real, mask, True)
+    values = np.where(real, values, X_pad).astype(values.dtype)
+    return Dirichlet(
+        mask=jax.device_put(mask, like.mask.sharding),
+        values=jax.device_put(values, like.values.sharding),
+    )
+
+
+def _shard(scene: Scene, pot: Potential, bc_fn, bc: Dirichlet, v0) -> Sharded:
+    """The :class:`Sharded` parts of a scene with ``[solver] devices > 1``."""
+    from ..sharding import shard
+
+    n = scene.spec.solver.devices
+    key = "[solver].devices"  # (host linear solvers and [fit] are refused by the schema)
+    try:
+        devices = check_devices(n)
+    except ValueError as e:
+        raise scene.error(f"{key}: {e}") from None
+    try:
+        pot_s, bc_s, part = shard(pot, bc, devices=devices)
+    except (ValueError, TypeError, NotImplementedError) as e:
+        raise scene.error(f"{key} = {n}: cannot shard this scene: {e}") from None
+    X_pad = np.asarray(part.to_padded(np.asarray(pot.mesh.points)))
+    x0 = pot_s.mesh.points
+
+    def sharded_bc(s: float) -> Dirichlet:
+        return _padded_dirichlet(part, bc_fn(s), X_pad, bc_s)
+
+    v0_s = None
+    if v0 is not None:
+        pad = np.asarray(part.to_padded(np.asarray(v0)))
+        pad[~np.asarray(part.node_real)] = 0.0
+        v0_s = jax.device_put(pad, x0.sharding)
+    return Sharded(
+        potential=pot_s,
+        bc=bc_s,
+        bc_fn=sharded_bc,
+        solver=bind_solver(newton_of(scene.spec.solver), pot_s.mesh, bc_s),
+        x0=x0,
+        v0=v0_s,
+        partition=part,
+        devices=tuple(str(d) for d in devices),
+        rest=X_pad,
+    )
+
+
+# ----------------------------------------------------------------------------------------
 # build
 # ----------------------------------------------------------------------------------------
 
@@ -775,6 +897,9 @@ def build(scene) -> Built:
         )
         v0 = _initial_velocity(scene, X, bc, dtype)
     pot = build_contact(scene, pot)  # [[obstacle]]: barrier contact (else unchanged)
+    sharded = None
+    if scene.spec.solver.devices > 1:  # [solver] devices: solve on the padded layout
+        sharded = _shard(scene, pot, bc_fn, bc, v0)
     return Built(
         scene=scene,
         mesh=mesh,
@@ -785,10 +910,13 @@ def build(scene) -> Built:
         bc=bc,
         bc_fn=bc_fn,
         time_dependent=time_dep,
-        solver=bind_solver(newton_of(scene.spec.solver), mesh, bc),
+        solver=bind_solver(newton_of(scene.spec.solver), mesh, bc, quadratic=is_quadratic(pot))
+        if sharded is None
+        else sharded.solver,
         integrator=integrator,
         x0=mesh.points,
         v0=v0,
         probes=probes,
         tip=tip,
+        shard=sharded,
     )

@@ -1,6 +1,7 @@
 """Scene ``[[obstacle]]`` / ``[contact]`` tables → a contact term, and its summary entries.
 
-A scene without ``[[obstacle]]`` gets no contact term (``Potential.contact = None``).
+A scene without ``[[obstacle]]`` and without ``[contact] self = true`` gets no contact term
+(``Potential.contact = None``).
 """
 
 from __future__ import annotations
@@ -41,16 +42,18 @@ def _obstacle(scene: Scene, i: int, spec, mu: float, dtype):
 
 
 def build_contact(scene: Scene, pot: Potential) -> Potential:
-    """``pot`` with the scene's contact term (unchanged without ``[[obstacle]]``).
+    """``pot`` with the scene's contact term (unchanged without ``[[obstacle]]`` and
+    self-contact).
 
     Raises:
-        SceneError: ``[contact]`` without obstacles, or a body node inside an obstacle at
-            the rest shape.
+        SceneError: ``[contact]`` without obstacles nor ``self = true``, a body node inside
+            an obstacle at the rest shape, or the boundary touching itself at rest.
     """
     spec = scene.spec
-    if not spec.obstacle:
+    self_contact = spec.contact is not None and spec.contact.self_contact
+    if not spec.obstacle and not self_contact:
         if spec.contact is not None:
-            raise scene.error("[contact] needs at least one [[obstacle]]")
+            raise scene.error("[contact] needs at least one [[obstacle]] or self = true")
         return pot
     cs = spec.contact or ContactSpec()
     dt = pot.mesh.points.dtype
@@ -59,23 +62,30 @@ def build_contact(scene: Scene, pot: Potential) -> Potential:
         for i, o in enumerate(spec.obstacle)
     ]
     try:
-        c = make_contact(pot, obs, dhat=cs.dhat, kappa=cs.kappa)
+        c = make_contact(
+            pot, obs, dhat=cs.dhat, kappa=cs.kappa, self_contact=self_contact, margin=cs.margin
+        )
     except ValueError as e:
-        raise scene.error(f"[[obstacle]]: {e}") from None
+        raise scene.error(f"{'[[obstacle]]' if obs else '[contact]'}: {e}") from None
     return pot.replace(contact=c)
 
 
 @jax.jit
 def _gap_and_force(contact, x, t):
     c = contact.at_time(t)
-    f = c.forces(x)
+    f = c.forces(x)  # self-contact forces sum to zero: the total is the obstacles'
     active = jnp.sum(jnp.any(c.distances(x) < c.dhat, axis=0))
     return c.min_distance(x), jnp.sum(f, axis=0), active
 
 
+def _fresh(contact, x):
+    """The contact with its self-contact broad phase at ``x`` (host; else unchanged)."""
+    return contact if contact.self_contact is None else contact.refreshed(np.asarray(x), force=True)
+
+
 def min_gap(pot: Potential, x, t: Any = 0.0) -> float:
     """Smallest node–obstacle distance [m] at ``x`` ``(n, dim)`` with obstacles at ``t``."""
-    return float(_gap_and_force(pot.contact, x, t)[0])
+    return float(_gap_and_force(_fresh(pot.contact, x), x, t)[0])
 
 
 def contact_report(pot: Potential, x, t: Any = 0.0, min_distance: float | None = None) -> dict:
@@ -83,7 +93,7 @@ def contact_report(pot: Potential, x, t: Any = 0.0, min_distance: float | None =
     over the run (``min_distance``, else at ``x``) [m], ``total_contact_force`` ``(dim,)``
     [N] (barrier + friction, on the body), ``active_nodes`` (within d̂), ``dhat`` [m] and
     ``kappa`` [N/m]."""
-    c = pot.contact
+    c = _fresh(pot.contact, x)
     d, f, active = _gap_and_force(c, x, t)
     return dict(
         min_distance=float(d) if min_distance is None else min(float(d), min_distance),

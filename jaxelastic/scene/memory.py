@@ -7,25 +7,30 @@ refuses a scene whose estimate exceeds the memory available (``psutil``), or
 ``[solver].max_memory_gb`` when that is set (the override: a larger value runs anyway).
 
 The model, with ``c`` cells of ``k`` nodes and ``q`` quadrature points, ``n`` nodes in
-``d`` dimensions and ``E = c·(k·d)²`` element-Hessian entries (8-byte floats and indices):
+``d`` dimensions, ``m = k·d``, ``E = c·m²`` element-Hessian entries and ``U = c·m(m+1)/2``
+of them in the element upper triangles (:func:`estimate_parts`):
 
 * mesh arrays: points, cells, ``dN`` ``(c, q, k, d)``, weights, incidence (host and device);
-* element Hessians (``hessian = "element"``/``"projected"``): about three copies of ``E``
-  (device result, host copy, symmetrised) plus the XLA temporaries of computing them
-  (``c·q·k·d³`` and ``c·q·d⁴``); 146k tets: ≈ 480 MB of host copies per Newton step;
-* host linear solvers (``direct``, ``amg``, and ``auto`` above a few dofs): the int64
-  element → CSR scatter map (``E`` entries; 161 MB at 146k tets) and the CSR matrix with
-  ``nnz ≈ E / r`` (``r`` measured on structured meshes: tri3 2.5, tri6 1.5, tet4 5.6,
-  tet10 2.4), a Cholesky factor with a fill growing like ``n^(1/3)`` in 3D and ``log n``
-  in 2D, or an AMG hierarchy of about twice the matrix;
+* element Hessians (``hessian = "element"``/``"projected"``): the device result (``E``
+  floats) and its symmetrised upper triangles (``U``), the input of the on-device CSR
+  assembly (no host copy: only the ``(nnz_upper,)`` data vector crosses), plus the XLA
+  temporaries of computing them (``c·q·k·d³`` and ``c·q·d⁴``);
+* host linear solvers (``direct``, ``amg``; ``auto`` picks direct up to 25k dofs in 3D, 80k
+  on P2 node sets): the int32 element → upper-CSR map (``U`` entries, 46 MB at 146k tets)
+  and the CSR matrices with ``nnz ≈ E / r`` (``r`` measured on structured meshes: tri3
+  2.5, tri6 1.5, tet4 5.6, tet10 2.4), a Cholesky factor of the upper triangle with a fill
+  growing like ``n^(1/3)`` in 3D and ``log n`` in 2D, or an AMG hierarchy of about twice
+  the matrix;
 * Newton and line-search vectors, the dynamic state, output cell fields, and a fixed
-  0.75 GB for the process with JAX, SciPy and PyAMG loaded and a small compiled program.
+  0.5 GB for the process with JAX, SciPy and PyAMG loaded and a small compiled program.
 
 The total is the peak resident memory of the process; it is compared with the memory the
-process can still grow to (its resident size now plus the memory available). Measured
-peaks of static box scenes (tet4 20k and 70k cells, tet10 6k cells, AMG): within 15 % of
-the estimate. It is meant to refuse a mesh that cannot fit before a NumPy allocation fails
-after minutes, not to predict the peak exactly.
+process can still grow to (its resident size now plus the memory available). Recalibrated
+(session 5) against the peak RSS of twist solves (``tests/test_sparse.py`` checks one
+within 1.5×): n = 10 (4k dofs, direct) 533 MiB measured / 530 MiB estimated; n = 19 (24k dofs,
+direct) 805 / 916 MiB; n = 29 (81k
+dofs, AMG) 1460–1571 MiB measured / 1517 MiB estimated. It is meant to refuse a mesh that
+cannot fit before a NumPy allocation fails after minutes, not to predict the peak exactly.
 """
 
 from __future__ import annotations
@@ -36,12 +41,21 @@ from typing import NamedTuple
 from .load import Scene
 from .schema import GENERATOR_DIM
 
-__all__ = ["MeshSize", "mesh_size", "file_mesh_size", "estimate", "available_bytes", "check"]
+__all__ = [
+    "MeshSize",
+    "mesh_size",
+    "file_mesh_size",
+    "estimate",
+    "estimate_parts",
+    "available_bytes",
+    "check",
+]
 
 GB = 1e9
 """Bytes per GB (decimal, as ``max_memory_gb``)."""
-RUNTIME_BYTES = 0.75 * GB
-"""The process with JAX, SciPy, PyAMG and the compiled code of a small scene loaded."""
+RUNTIME_BYTES = 0.5 * GB
+"""The process with JAX, SciPy, PyAMG and the compiled code of a small scene loaded
+(twist n = 10, 4k dofs, PARDISO: 533 MiB peak with about 50 MB of arrays)."""
 
 # (dim, order, composite) -> (element, nodes per cell, quadrature points)
 _ELEMENTS = {
@@ -54,8 +68,10 @@ _ELEMENTS = {
 }
 _NNZ_RATIO = {"tri3": 2.5, "tri6": 1.5, "tri3x4": 1.5, "tet4": 5.6, "tet10": 2.4, "tet4x8": 2.4}
 """``E / nnz`` of the assembled Hessian (measured on rectangle/box meshes)."""
-_AUTO_DIRECT_MAX_DOFS = {2: 100_000, 3: 10_000}
+_AUTO_DIRECT_MAX_DOFS = {2: 100_000, 3: 25_000}
 """As :data:`jaxelastic.solvers.linear.AUTO_DIRECT_MAX_DOFS` (``"auto"``: direct below)."""
+_AUTO_DIRECT_MAX_DOFS_P2 = {2: 100_000, 3: 80_000}
+"""As :data:`jaxelastic.solvers.linear.AUTO_DIRECT_MAX_DOFS_P2` (P2 node sets)."""
 
 
 class MeshSize(NamedTuple):
@@ -118,38 +134,63 @@ def _linear_kind(scene: Scene, size: MeshSize) -> str:
     s = scene.spec.solver
     if s.linear != "auto":
         return s.linear
-    small = size.n_nodes * size.dim <= _AUTO_DIRECT_MAX_DOFS[size.dim]
-    return "direct" if small else "amg"
+    limits = (
+        _AUTO_DIRECT_MAX_DOFS_P2 if size.nodes_per_cell > size.dim + 1 else _AUTO_DIRECT_MAX_DOFS
+    )
+    return "direct" if size.n_nodes * size.dim <= limits[size.dim] else "amg"
 
 
 def estimate(scene: Scene, size: MeshSize) -> dict[str, float]:
     """Bytes per part of a build + solve of ``scene`` on a mesh of ``size`` (see the
     module docstring), largest first."""
+    return estimate_parts(
+        size,
+        linear=_linear_kind(scene, size),
+        hessian=scene.spec.solver.hessian,
+        static=scene.static,
+    )
+
+
+def estimate_parts(
+    size: MeshSize, *, linear: str, hessian: str = "element", static: bool = True
+) -> dict[str, float]:
+    """The model of :func:`estimate` for a resolved linear solver kind (``"direct"``,
+    ``"amg"``, ``"cg"``, ``"multilevel"``), bytes per part, largest first.
+
+    Args:
+        size: the mesh size; linear: the linear solver kind (not ``"auto"``);
+        hessian: ``"element"``/``"projected"`` (element Hessians are formed) or ``"hvp"``;
+        static: False adds the dynamic state.
+    """
     n, c, d, k, q = size.n_nodes, size.n_cells, size.dim, size.nodes_per_cell, size.n_quad
-    E = c * (k * d) ** 2
+    m = k * d
+    E = c * m * m
+    upper = c * m * (m + 1) // 2  # element-Hessian entries of the local upper triangles
     parts: dict[str, float] = {
         "mesh arrays": 2.0 * 8 * (n * d + c * q * (k * d + 1)) + 4.0 * 5 * c * k,
         "Newton vectors": 8.0 * 40 * n * d,
         "output fields": 8.0 * 4 * c * q * d * d,
         "JAX runtime": RUNTIME_BYTES,
     }
-    if scene.spec.solver.hessian == "hvp":
+    if hessian == "hvp":
         parts["Hessian-vector products"] = 8.0 * 10 * c * q * d**4
     else:
-        parts["element Hessians"] = 8.0 * 3 * E
+        # the device result and its symmetrised upper triangle (segment-sum input); no
+        # host copies since the CSR data is assembled on the device
+        parts["element Hessians"] = 8.0 * (E + upper)
         parts["XLA temporaries"] = 2 * 8.0 * (c * q * k * d**3 + c * q * d**4)
-    kind = _linear_kind(scene, size)
-    if kind in ("direct", "amg"):
+    if linear in ("direct", "amg"):
         nnz = E / _NNZ_RATIO[size.element]
-        parts["Hessian scatter map"] = 8.0 * E + 8.0 * 3 * c * k * k
-        parts["sparse matrix"] = (8 + 4 + 8 + 8 + 12) * nnz
+        parts["Hessian scatter map"] = 4.0 * upper  # int32, upper triangles only
+        # full CSR (data, int32 indices, upper→full and BSR maps) + upper CSR, host copies
+        parts["sparse matrix"] = (8 + 4 + 4 + 4) * nnz + (8 + 4) * 0.55 * nnz + 8.0 * nnz
         dofs = n * d
-        if kind == "direct":
+        if linear == "direct":
             fill = max(4.0, 0.9 * dofs ** (1 / 3)) if d == 3 else max(3.0, math.log2(dofs))
-            parts["Cholesky factor"] = 12.0 * fill * nnz
+            parts["Cholesky factor"] = 12.0 * fill * 0.55 * nnz
         else:
             parts["AMG hierarchy"] = 2.0 * 12 * nnz + 8.0 * 6 * 3 * dofs
-    if not scene.static:
+    if not static:
         parts["dynamic state"] = 8.0 * 10 * n * d
     return dict(sorted(parts.items(), key=lambda kv: -kv[1]))
 

@@ -48,6 +48,7 @@ __all__ = [
     "static_figure",
     "dynamic_figures",
     "run_header",
+    "partition_report",
     "COMPILE_EVENTS",
     "CompileClock",
     "displacement_report",
@@ -242,6 +243,19 @@ def _material_constants(params) -> dict:
     return out
 
 
+def partition_report(built: Built) -> dict | None:
+    """How a scene with ``[solver] devices > 1`` was split (None on one device): the
+    devices, the method and, per shard, cells, owned nodes, ghost and interface nodes and
+    the halo bytes one exchange of a nodal vector receives
+    (:meth:`~jaxelastic.mesh.partition.Partition.stats`)."""
+    sh = built.shard
+    if sh is None:
+        return None
+    itemsize = np.dtype(built.mesh.points.dtype).itemsize
+    stats = sh.partition.stats(dim=built.mesh.dim, itemsize=itemsize)
+    return dict(devices=list(sh.devices), **stats)
+
+
 def run_header(built: Built, out: str) -> dict:
     """The start of a run's summary: scene, mesh, material, solver, output paths."""
     scene, mesh = built.scene, built.mesh
@@ -263,6 +277,8 @@ def run_header(built: Built, out: str) -> dict:
         precision=str(mesh.points.dtype),
         linear_solver=linear_solver_name(built.solver.linear),
         integrator=None if built.integrator is None else built.integrator._asdict(),
+        devices=scene.spec.solver.devices,
+        partition=partition_report(built),
         timings={},
         outputs=dict(directory=out, summary=os.path.join(out, "summary.json"), png=[]),
     )
@@ -282,7 +298,10 @@ def vtu_plane(built: Built) -> str:
 def write_static_vtu(built: Built, out: str, t: float, x) -> str:
     """``static.pvd`` + ``static_0000.vtu`` of the static solution; returns the pvd path."""
     plane = vtu_plane(built)
-    with TimeSeriesWriter(out, "static", built.mesh, built.psi, built.params, plane=plane) as w:
+    contact = built.potential.contact  # contact_force and gap fields (None: none)
+    with TimeSeriesWriter(
+        out, "static", built.mesh, built.psi, built.params, plane=plane, contact=contact
+    ) as w:
         w.write(t, x)
     remove_stale(out, "static", 1)
     return w.pvd_path
@@ -507,6 +526,20 @@ def _solver_row(s: dict) -> str:
     return text
 
 
+def _partition_row(p: dict) -> str:
+    """``[solver] devices``: shard count, method, cells / interface nodes / halo per shard."""
+
+    def span(v: list) -> str:
+        return f"{min(v)}" if min(v) == max(v) else f"{min(v)}-{max(v)}"
+
+    return (
+        f"{p['shards']} shards ({p['method']}): {span(p['cells'])} cells, "
+        f"{span(p['interface_nodes'])} interface nodes per shard\n"
+        f"halo {_g(p['halo_bytes_total'] / 1e3, 3)} kB per exchange "
+        f"(replicated vector {_g(p['replicated_bytes'] / 1e3, 3)} kB)"
+    )
+
+
 def _reaction_row(r: dict, unit: str = "N") -> str | None:
     """Reaction vs applied load per direction where either is non-zero."""
     R = np.asarray(r.get("reaction_force", []), float)
@@ -590,6 +623,8 @@ def run_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
     head = f"{s['scene']['name']}: {s['status']} ({kind})"
     rows = [("mesh", _mesh_row(s["mesh"])), ("material", _material_row(s))]
     rows.append(("solver", _solver_row(s)))
+    if s.get("partition"):
+        rows.append(("devices", _partition_row(s["partition"])))
     st, dy = s.get("static"), s.get("dynamic")
     if dy is not None:
         settled = f"settled at t = {_g(dy['settle_time'])} s" if dy["settled"] else "not settled"

@@ -19,11 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import dynamics
+from ..distributed import host_array
 from ..io import TimeSeriesWriter
 from ..loads import Dirichlet
 from ..solvers import Solution, SolveError, solve_incremental
 from . import interrupt, memory
-from .build import Built, build
+from .build import Built, build, padded_dirichlet
 from .contact import contact_report, min_gap
 from .interrupt import Interrupted
 from .load import load_scene
@@ -108,17 +109,26 @@ def static_solve(
     """
     cfg = built.scene.spec.integrator
     n = cfg.load_steps if isinstance(cfg, StaticIntegrator) else 1
-    path = built.bc_fn if bc is None else (lambda s: bc)
+    sh = built.shard
+    if sh is None:
+        path = built.bc_fn if bc is None else (lambda s: bc)
+        x0, pot = built.x0, built.potential.replace(mass=None) if pot is None else pot
+    else:  # [solver] devices > 1: solve on the padded layout, report in the natural one
+        fixed = None if bc is None else sh_dirichlet(built, bc)
+        path = sh.bc_fn if fixed is None else (lambda s: fixed)
+        x0, pot = sh.x0, sh.potential.replace(mass=None) if pot is None else pot
+    on_increment = callback or (lambda s, sol: interrupt.check())
     sol = solve_incremental(
-        built.potential.replace(mass=None) if pot is None else pot,
+        pot,
         path(1.0),
-        x0=built.x0,
+        x0=x0,
         solver=built.solver,
         steps=n,
         path=path,
         throw=False,
-        callback=callback or (lambda s, sol: interrupt.check()),
+        callback=lambda s, so: on_increment(s, natural_solution(built, so)),
     )
+    sol = natural_solution(built, sol)
     stats = [
         dict(
             status=h["status"],
@@ -135,6 +145,27 @@ def static_solve(
         s = sol.stats["load_factor"]
         raise SolveError(sol, what=f"{what} (stalled at load factor {s:.4g})")
     return sol.x, stats, sol
+
+
+def natural_solution(built: Built, sol: Solution) -> Solution:
+    """``sol`` with ``x`` as a NumPy array in the natural node numbering (unchanged without
+    ``[solver] devices``; gathered from every process in a multi-process run)."""
+    if built.shard is None:
+        return sol
+    return sol._replace(x=natural(built, sol.x))
+
+
+def natural(built: Built, a) -> np.ndarray:
+    """A padded node field of a sharded scene ``(S·n_own, ...)`` as a natural NumPy array
+    ``(n_nodes, ...)`` (a collective in a multi-process run: every process calls it)."""
+    assert built.shard is not None  # a sharded scene
+    return built.shard.partition.to_natural(host_array(a), kind="nodes")
+
+
+def sh_dirichlet(built: Built, bc: Dirichlet) -> Dirichlet:
+    """Natural Dirichlet data of a sharded scene in its padded, sharded layout."""
+    assert built.shard is not None  # a sharded scene
+    return padded_dirichlet(built.shard, bc)
 
 
 def _static_report(built: Built, x, stats: list[dict], sol: Solution) -> dict:
@@ -280,18 +311,32 @@ def _simulate(built: Built, out: str, progress: bool, summary: dict):
     writer = None
     if built.scene.spec.output.vtu:
         writer = TimeSeriesWriter(
-            out, "dynamic", built.mesh, built.psi, built.params, plane=vtu_plane(built)
-        )
+            out, "dynamic", built.mesh, built.psi, built.params, plane=vtu_plane(built),
+            contact=built.potential.contact,
+        )  # fmt: skip
     mon = _Monitor(built, writer, n_steps)
     log(progress, f"{n_steps} time steps of h = {integ.h:g} s (the first includes compilation)")
     bc = built.bc_fn if built.time_dependent else built.bc
+    state, callback = mon.state, mon
+    if built.shard is not None:  # [solver] devices > 1: step on the padded layout
+        sh = built.shard
+        pot, bc = sh.potential, sh.bc_fn if built.time_dependent else sh.bc
+        state, callback = dynamics.init_state(sh.x0, sh.v0), _NaturalStates(built, mon)
+
     failure = stopped = None
     t0 = time.perf_counter()
     try:
         if writer is not None:
             mon.write(0.0, mon.state)
         dynamics.simulate(
-            pot, mon.state, bc, integ, n_steps, solver=built.solver, callback=mon, progress=progress
+            pot,
+            state,
+            bc,
+            integ,
+            n_steps,
+            solver=built.solver,
+            callback=callback,
+            progress=progress,
         )
     except SolveError as e:
         failure = e
@@ -307,6 +352,18 @@ def _simulate(built: Built, out: str, progress: bool, summary: dict):
     with interrupt.shield():
         _close_series(mon, writer, out, summary)
     return mon, failure, stopped
+
+
+class _NaturalStates:
+    """The ``simulate`` callback of a sharded scene: the monitor sees each state in the
+    natural numbering (gathered from every process in a multi-process run)."""
+
+    def __init__(self, built: Built, mon: _Monitor):
+        self.built, self.mon = built, mon
+
+    def __call__(self, state, solution, record) -> bool:
+        nat = {k: natural(self.built, getattr(state, k)) for k in ("x", "v", "x_prev", "v_prev")}
+        return self.mon(state._replace(**nat), solution, record)
 
 
 def _failed_step(e: SolveError, n_done: int, h: float) -> dict:
@@ -390,7 +447,8 @@ def _compare_static(built: Built, out: str, progress: bool, mon: _Monitor, summa
     bc = built.bc_fn(t_end)
     t0 = time.perf_counter()
     assert built.integrator is not None  # a dynamic scene
-    pot = dynamics.static_potential(built.potential, built.integrator)  # the steps' compile
+    base = built.potential if built.shard is None else built.shard.potential
+    pot = dynamics.static_potential(base, built.integrator)  # the steps' compile
     x_static, stats, _ = static_solve(built, bc=bc, what="static comparison solve", pot=pot)
     summary["timings"]["static_solve_incl_compile"] = time.perf_counter() - t0
     u_s = np.asarray(x_static) - X

@@ -198,7 +198,7 @@ class Table(BaseModel):
             return data
         if not isinstance(data, Mapping):
             raise fail(f"{{at}} must be a table, got {type_name(data)} {data!r}")
-        valid = list(cls.model_fields)
+        valid = [f.alias or k for k, f in cls.model_fields.items()]  # [contact] self
         for k in data:
             if k not in valid:
                 raise fail(cls._unknown_key(k, valid))
@@ -721,8 +721,20 @@ class ObstacleSpec(Table):
 
 
 class ContactSpec(Table):
-    """Barrier contact settings (all optional; used when there is an ``[[obstacle]]``)."""
+    """Barrier contact settings (all optional; used when there is an ``[[obstacle]]`` or
+    ``self = true``)."""
 
+    self_contact: bool = Field(
+        default=False,
+        alias="self",
+        description="barrier contact of the body's boundary with itself (point-triangle, "
+        "edge-edge; 2D point-edge); no friction on self-contact pairs",
+    )
+    margin: Positive | None = Field(
+        default=None,
+        description="self-contact motion bound of one broad phase [m] (default min(10 x dhat, "
+        "1/4 of the mean boundary-edge length))",
+    )
     dhat: Positive | None = Field(
         default=None, description="barrier reach [m] (default 1e-3 x the bounding-box diagonal)"
     )
@@ -789,6 +801,12 @@ class SolverSpec(Table):
         description="memory budget [GB] for the estimate checked before the build (default: "
         "the memory available); a scene whose estimate exceeds it is refused, a larger value "
         "runs it anyway",
+    )
+    devices: Annotated[Integer, Field(ge=1)] = Field(
+        default=1,
+        description="shard the mesh over the first N devices JAX sees (jaxelastic.shard; "
+        'N > 1 needs linear = "auto", "cg" or "multilevel"; host CPU devices: '
+        "XLA_FLAGS=--xla_force_host_platform_device_count=N)",
     )
 
 
@@ -1090,6 +1108,14 @@ class SceneSpec(Table):
                     return "[fit].target.refine needs a [mesh].generator (not a mesh file)"
             if dynamic:
                 return "[fit] needs a static scene ([integrator].type = 'static')"
+        n_dev, linear = self.solver.devices, self.solver.linear
+        if n_dev > 1 and self.fit is not None:
+            return f"[solver].devices = {n_dev}: a [fit] scene runs on one device (devices = 1)"
+        if n_dev > 1 and linear in ("direct", "amg"):
+            return (
+                f'[solver].devices = {n_dev}: linear = "{linear}" is a host solver and cannot '
+                'run sharded; use linear = "auto", "cg" or "multilevel"'
+            )
         if self.material.density is None:
             if dynamic:
                 return "[material].density is required for a dynamic scene"

@@ -22,6 +22,7 @@ from .linear import Multilevel as Multilevel
 from .linear import bind_linear as bind_linear
 from .linear import cg as cg
 from .newton import Newton as Newton
+from .newton import contact_potential as contact_potential
 from .results import Solution as Solution
 from .results import SolveError as SolveError
 from .results import Status as Status

@@ -46,7 +46,7 @@ from .. import potential as pot_mod
 from ..loads import Dirichlet
 from ..potential import Potential
 from .linear import NewtonSystem
-from .newton import Newton
+from .newton import Newton, contact_potential
 from .results import Solution, Status
 
 __all__ = [
@@ -123,10 +123,16 @@ def _exact_system(pot: Potential, x, mask) -> NewtonSystem:
     free = ~mask
     fm = free.astype(x.dtype)
     Ke = pot_mod.elastic_element_hessians(pot, x, project=False, exact_contact=True)
+    # self-contact: the pair Hessians' coupling of different nodes (not inside Ke)
+    cpl = None if pot.contact is None else pot.contact.coupling(x, exact=True)
+
+    def KV(K, v) -> jax.Array:
+        Kv = pot_mod.element_hessian_vp(pot, K, v)
+        return Kv if cpl is None else Kv + cpl(v)
 
     def operator(K):
         def A(v):
-            return fm * pot_mod.element_hessian_vp(pot, K, fm * v) + (1.0 - fm) * v
+            return fm * KV(K, fm * v) + (1.0 - fm) * v
 
         return A
 
@@ -137,7 +143,7 @@ def _exact_system(pot: Potential, x, mask) -> NewtonSystem:
     else:
 
         def H(v):
-            return pot_mod.element_hessian_vp(pot, Ke, v)
+            return KV(Ke, v)
 
     def A(v):
         return fm * H(fm * v) + (1.0 - fm) * v
@@ -198,7 +204,8 @@ def _reverse(solver: Newton, adj: ImplicitAdjoint, pot, bc, x0) -> Solution:
     res = solver.minimize(stop(pot), stop(bc), stop(x0))
     x = checkpoint_name(res.x, X_STAR)
     status = checkpoint_name(res.status, X_STAR)
-    x = _attach_fn(solver, adj)(pot, bc, x, status)
+    # with contact, x* minimises the potential with the in-solve adapted κ
+    x = _attach_fn(solver, adj)(contact_potential(pot, res), bc, x, status)
     return res._replace(x=x, status=status)
 
 
@@ -221,10 +228,10 @@ def _forward_fn(solver: Newton, adj: ImplicitAdjoint):
         res = solve_fn(pot, bc, x0)
         x = res.x
         fm = (~bc.mask).astype(x.dtype)
-        system = _exact_system(pot, x, bc.mask)
+        system = _exact_system(contact_potential(pot, res), x, bc.mask)
 
-        def g_free(p):
-            return fm * pot_mod.gradient(p, x)
+        def g_free(p):  # with contact: at the in-solve adapted κ
+            return fm * pot_mod.gradient(contact_potential(p, res), x)
 
         _, g_dot = jax.jvp(g_free, (pot,), (pot_dot,))  # (∂g_f/∂θ)·θ̇
         v_dot = (1.0 - fm) * bc_dot.values  # ẋ_D = v̇_D

@@ -33,11 +33,21 @@ import numpy as np
 from jax import lax
 from jax.core import Tracer
 
+from ..distributed import host_array
 from ..energy import project_psd
 from ..potential import Potential, mass_diagonal, node_hessian_blocks
+from ..sharding import is_sharded
 from .backends import available_direct_backends
+from .blocks import spd_block_inverse
 from .host import ContentCache, HostLinearSolver, content_key
-from .multilevel import Hierarchy, build_hierarchy, preconditioner
+from .multilevel import (
+    Hierarchy,
+    ShardedHierarchy,
+    build_hierarchy,
+    build_sharded_hierarchy,
+    preconditioner,
+    sharded_preconditioner,
+)
 from .pattern import local_upper
 from .results import Solution, Status
 
@@ -55,6 +65,7 @@ __all__ = [
     "LINEAR_SOLVERS",
     "AUTO_DIRECT_MAX_DOFS",
     "AUTO_DIRECT_MAX_DOFS_P2",
+    "AUTO_DIRECT_MAX_DOFS_QUADRATIC",
 ]
 
 LINEAR_SOLVERS = ("auto", "cg", "direct", "amg", "multilevel")
@@ -73,6 +84,17 @@ Measured on the neo-Hookean P2 steel bracket (31k dofs, 5 load steps,
 ``scripts/bench_bracket.py``): warm solve direct 58 s / 20 Newton steps / 1.1 GB against
 AMG 311 s / 26 steps / 2.5 GB (loaded machine). 80k is an extrapolation of that 5× lead
 with the P1 slope of the direct/AMG ratio (∝ n^0.7), kept conservative."""
+
+AUTO_DIRECT_MAX_DOFS_QUADRATIC = {2: 200_000, 3: 120_000}
+"""The same for a quadratic potential (``bind_linear(..., quadratic=True)``, which
+:func:`jaxelastic.solve` passes for :func:`~jaxelastic.solvers.newton.is_quadratic`
+potentials, e.g. the ``linear`` material): Newton takes one step, so one factorisation
+against one tight AMG-CG solve (no reuse of a hierarchy across steps to amortise).
+Measured on the linear P1 steel bracket (84k dofs, ``scripts/bench_bracket.py``, loaded
+machine): warm direct 4.4 s against AMG 14.8 s. 120k in 3D is a conservative
+extrapolation of that 3.4× lead (the direct/AMG ratio grows like n^0.7, see
+:data:`AUTO_DIRECT_MAX_DOFS`) that also bounds the factor's memory (1.7 GB peak at 81k dofs
+on the twist)."""
 
 _P2_NODES = ("tri6", "tet10", "tri3x4", "tet4x8")
 
@@ -144,23 +166,32 @@ def cg(A: Callable, b: jax.Array, M: Callable | None = None, *, tol, max_iter: i
     return Solution(x=x, status=status, stats=dict(iterations=k, residual=rn))
 
 
-def block_jacobi(blocks: jax.Array, free: jax.Array):
+def block_jacobi(blocks: jax.Array, free: jax.Array, *, lapack: bool = True):
     """Node-block Jacobi preconditioner from ``(n, d, d)`` diagonal blocks.
 
     Prescribed dofs (``free == False``, shape ``(n, d)``) are decoupled (identity rows and
     columns). Blocks that are not positive definite fall back to ``|diag|`` (or 1).
+    ``lapack=False`` inverts them with an unrolled Cholesky
+    (:func:`~jaxelastic.solvers.blocks.spd_block_inverse`) instead of LAPACK, as a sharded
+    program on several XLA:CPU devices must (jaxlib 0.10's batched LAPACK can deadlock
+    there); the two agree to round-off, but only LAPACK gives bit-identical blocks in
+    every compiled program.
     """
     d = blocks.shape[-1]
     eye = jnp.eye(d, dtype=blocks.dtype)[None]  # (1, d, d)
     fm = free.astype(blocks.dtype)
     B = blocks * fm[:, :, None] * fm[:, None, :] + eye * (1.0 - fm)[:, :, None]
-    L = jnp.linalg.cholesky(B)
-    ok = jnp.all(jnp.isfinite(L), axis=(1, 2))
+    if lapack:
+        L = jnp.linalg.cholesky(B)
+        ok = jnp.all(jnp.isfinite(L), axis=(1, 2))
+        inv = jnp.linalg.inv(jnp.where(ok[:, None, None], B, eye))
+    else:
+        inv, ok = spd_block_inverse(B)  # no LAPACK: safe on several XLA:CPU devices
     diag = jnp.abs(jnp.diagonal(B, axis1=1, axis2=2))
     diag = jnp.where(diag > 0, diag, 1.0)
     Binv = jnp.where(
         ok[:, None, None],
-        jnp.linalg.inv(jnp.where(ok[:, None, None], B, eye)),
+        inv,
         eye / diag[:, :, None],
     )
 
@@ -242,7 +273,9 @@ class CG:
         if kind == "none" or system.Ke is None:
             return None
         blocks = node_hessian_blocks(system.pot, system.Ke)
-        return (block_jacobi if kind == "block_jacobi" else jacobi)(blocks, system.free)
+        if kind == "jacobi":
+            return jacobi(blocks, system.free)
+        return block_jacobi(blocks, system.free, lapack=not is_sharded(system.pot.mesh))
 
     def newton_step(self, system: NewtonSystem, rhs, tol) -> Solution:
         """Inexact solve of the Newton system to ``‖r‖ ≤ tol``."""
@@ -445,6 +478,18 @@ class Direct(_Host):
     kind = "direct"
 
     def _factor_and_solve(self, system, A, Ke, md, rhs, tol, token):
+        if getattr(system.pot.contact, "self_contact", None) is not None:
+            # self-contact couples nodes outside the element pattern: the factorisation
+            # of the element part preconditions CG on the whole operator A
+            backend = self._require()
+            token = _host_factor(backend, Ke, md, token)
+
+            def M(r):
+                return system.free * _host_apply(backend, r, token)
+
+            res = cg(A, rhs, M, tol=tol, max_iter=2000)
+            st = jnp.where(token == Status.NOT_POSITIVE_DEFINITE, token, res.status)
+            return res.x, res.stats["iterations"], st
         # one callback: the step must come from this matrix's factorisation
         dx, st = _host_factor_solve(self._require(), Ke, md, rhs, token)
         return dx, jnp.asarray(1, jnp.int32), st
@@ -498,6 +543,32 @@ def _shared_hierarchy(mesh, bc, max_coarse: int, smooth: bool) -> Hierarchy:
     )
 
 
+def _shared_sharded_hierarchy(mesh, bc, max_coarse: int, smooth: bool) -> ShardedHierarchy:
+    """The (cached) hierarchy of a sharded mesh (``mesh.halo`` set, global padded layout):
+    :func:`~jaxelastic.solvers.multilevel.build_hierarchy` of its real cells, whose
+    aggregation follows the rest geometry (the coarse levels of the one-device mesh), then
+    the per-shard level-0 tables (:func:`~jaxelastic.solvers.multilevel.build_sharded_hierarchy`).
+    Keyed by the padded mesh and mask (which fix the partition) and the halo's sizes."""
+    if smooth:
+        raise ValueError(
+            "je.Multilevel(smooth=True) is not supported on a sharded mesh (its smoothed "
+            "prolongator needs whole level-0 rows); use the default smooth=False"
+        )
+    halo = mesh.halo
+    cells, points, mask = (host_array(a) for a in (mesh.cells, mesh.points, bc.mask))
+    shape = (halo.n_shards, halo.n_own, halo.n_ghost, halo.c_loc, halo.shifts)
+    opts = dict(max_coarse=max_coarse, smooth=smooth, halo=shape, devices=str(halo.device_mesh))
+    key = content_key(cells, points, mask, "multilevel-sharded", opts)
+
+    def build():
+        real = ~(cells == cells[:, :1]).all(axis=1)  # a padded cell repeats one node
+        h = build_hierarchy(cells[real], points, mask, max_coarse=max_coarse, smooth=False)
+        host_halo = jax.tree_util.tree_map(host_array, halo)
+        return build_sharded_hierarchy(h, host_halo, cells)
+
+    return _HIERARCHIES.get(key, build)
+
+
 @dataclasses.dataclass(frozen=True)
 class Multilevel:
     """CG preconditioned by aggregation multigrid applied on the device, inside ``jit``.
@@ -507,7 +578,9 @@ class Multilevel:
     level operators from the element Hessians on the device (exact Galerkin products) and
     runs :func:`cg` with one V-cycle per iteration (:mod:`~jaxelastic.solvers.multilevel`).
     No host callback: it works under ``jax.vmap`` (e.g. over material parameters), in
-    float32 and float64, and on sharded inputs. :func:`jaxelastic.solve` passes the
+    float32 and float64, and on a sharded mesh (:func:`jaxelastic.shard`: level 0 per
+    shard with halo exchanges, the coarse levels replicated, the same hierarchy and
+    iterates as on one device; plain aggregation only). :func:`jaxelastic.solve` passes the
     hierarchy to its compiled function as an argument (no large XLA constants); inside a
     user's ``jit``/``vmap``/``grad`` a bound solver's arrays are constants of that trace.
 
@@ -519,8 +592,9 @@ class Multilevel:
             ~14x the plain one on CPU) instead of plain aggregation.
         max_coarse: dofs of the coarsest level (dense Cholesky every Newton step).
         max_iter: CG iteration cap per linear solve.
-        hierarchy: the bound :class:`~jaxelastic.solvers.multilevel.Hierarchy` (set by
-            :func:`bind_linear`; leave None). Compared by identity.
+        hierarchy: the bound :class:`~jaxelastic.solvers.multilevel.Hierarchy`, or
+            :class:`~jaxelastic.solvers.multilevel.ShardedHierarchy` on a sharded mesh
+            (set by :func:`bind_linear`; leave None). Compared by identity.
     """
 
     degree: int = 4
@@ -529,7 +603,7 @@ class Multilevel:
     smooth: bool = False
     max_coarse: int = 1500
     max_iter: int = 2000
-    hierarchy: Hierarchy | None = None
+    hierarchy: Hierarchy | ShardedHierarchy | None = None
 
     needs_element_hessians = True
 
@@ -552,12 +626,15 @@ class Multilevel:
         return self.hierarchy is not None
 
     def bind(self, mesh, bc) -> Self:
-        """This solver with the hierarchy of ``mesh`` and ``bc.mask`` (host, cached)."""
+        """This solver with the hierarchy of ``mesh`` and ``bc.mask`` (host, cached; per
+        shard when the mesh is sharded)."""
+        sharded = getattr(mesh, "halo", None) is not None
+        shared = _shared_sharded_hierarchy if sharded else _shared_hierarchy
         return dataclasses.replace(
-            self, hierarchy=_shared_hierarchy(mesh, bc, int(self.max_coarse), bool(self.smooth))
+            self, hierarchy=shared(mesh, bc, int(self.max_coarse), bool(self.smooth))
         )
 
-    def _require(self) -> Hierarchy:
+    def _require(self) -> Hierarchy | ShardedHierarchy:
         if self.hierarchy is None:
             raise ValueError(
                 "Multilevel() is not bound to a mesh: call je.solvers.bind_linear(solver, "
@@ -566,15 +643,25 @@ class Multilevel:
         return self.hierarchy
 
     def _M(self, system: NewtonSystem, Ke):
-        M = preconditioner(
-            self._require(),
-            Ke,
-            mass_diagonal(system.pot),
-            system.free,
-            degree=int(self.degree),
-            cycle=self.cycle,
-            coarse_scale=float(self.coarse_scale),
-        )
+        h = self._require()
+        halo = getattr(system.pot.mesh, "halo", None)
+        if (halo is not None) != isinstance(h, ShardedHierarchy):
+            raise ValueError(
+                "this Multilevel() was bound to a "
+                + ("one-device" if halo is not None else "sharded")
+                + " mesh but solves a "
+                + ("sharded" if halo is not None else "one-device")
+                + " one: bind it to the mesh it solves (je.solvers.bind_linear(solver, "
+                "mesh, bc)), or pass je.Multilevel() unbound and let je.solve bind it"
+            )
+        deg, cyc, scale = int(self.degree), self.cycle, float(self.coarse_scale)
+        md = mass_diagonal(system.pot)
+        if isinstance(h, ShardedHierarchy):
+            M = sharded_preconditioner(
+                h, halo, Ke, md, system.free, degree=deg, cycle=cyc, coarse_scale=scale
+            )
+        else:
+            M = preconditioner(h, Ke, md, system.free, degree=deg, cycle=cyc, coarse_scale=scale)
         free = system.free
 
         def apply(r):
@@ -648,8 +735,13 @@ def _missing_host_package(kind: str) -> str | None:
     return "pypardiso" if available_direct_backends() == ("splu",) else None
 
 
-def bind_linear(linear: str | LinearSolver | None, mesh, bc) -> LinearSolver:
+def bind_linear(
+    linear: str | LinearSolver | None, mesh, bc, *, quadratic: bool = False
+) -> LinearSolver:
     """Resolve a linear-solver choice for one scene (outside jit).
+
+    Long because: one dispatch over names and solver objects, each with its own refusal
+    (traced meshes, sharded meshes) next to the choice it refuses.
 
     Args:
         linear: ``"auto"`` (:class:`Direct` up to :data:`AUTO_DIRECT_MAX_DOFS` dofs
@@ -662,10 +754,14 @@ def bind_linear(linear: str | LinearSolver | None, mesh, bc) -> LinearSolver:
             to ``mesh`` and ``bc.mask`` unless already bound).
         mesh: the :class:`~jaxelastic.mesh.Mesh`; bc: the
             :class:`~jaxelastic.loads.Dirichlet` data (its mask fixes the pattern).
+        quadratic: the potential is quadratic (one Newton step,
+            :func:`~jaxelastic.solvers.newton.is_quadratic`): ``"auto"`` keeps the direct
+            solver up to :data:`AUTO_DIRECT_MAX_DOFS_QUADRATIC` dofs.
 
     Raises:
-        ValueError: unknown name, or a host solver / an unbound :class:`Multilevel` on a
-            traced mesh.
+        ValueError: unknown name, a host solver / an unbound :class:`Multilevel` on a
+            traced mesh, or a host solver on a sharded mesh (:func:`jaxelastic.shard`;
+            ``"auto"`` picks a device solver there).
     """
     if linear is None:
         linear = "auto"
@@ -675,7 +771,15 @@ def bind_linear(linear: str | LinearSolver | None, mesh, bc) -> LinearSolver:
         if linear == "auto":
             if _is_traced((mesh.cells, mesh.points, bc.mask)):
                 return CG()
+            if is_sharded(mesh):  # the sharded multilevel once it can, else matrix-free CG
+                return bind_linear(
+                    "multilevel" if getattr(Multilevel, "supports_sharding", False) else "cg",
+                    mesh,
+                    bc,
+                )
             limits = AUTO_DIRECT_MAX_DOFS_P2 if mesh.element in _P2_NODES else AUTO_DIRECT_MAX_DOFS
+            if quadratic:
+                limits = AUTO_DIRECT_MAX_DOFS_QUADRATIC
             small = mesh.n_dofs <= limits.get(mesh.dim, 10_000)
             linear = "direct" if small else "amg"
             missing = _missing_host_package(linear)
@@ -709,6 +813,12 @@ def bind_linear(linear: str | LinearSolver | None, mesh, bc) -> LinearSolver:
             )
         return linear.bind(mesh, bc)
     if isinstance(linear, _Host):
+        if is_sharded(mesh):
+            raise ValueError(
+                f"linear solver {type(linear).__name__}() runs on the host and cannot take a "
+                "mesh sharded over several devices (je.shard); use linear='multilevel' (the "
+                "device multigrid) or linear='cg' (matrix-free, block-Jacobi preconditioned)"
+            )
         if linear.backend is not None:
             return linear
         if _is_traced((mesh.cells, mesh.points, bc.mask)):

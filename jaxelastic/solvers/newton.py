@@ -25,6 +25,12 @@ Each iteration:
    body's size;
    where ``‖g‖_ref`` is the largest free residual seen, ‖f_ext‖, or the largest
    right-hand side ``‖g_f + K_fD Δ_D‖`` (the force induced by a Dirichlet motion).
+5. With a contact term and ``kappa_max_factor > 1`` (opt-in), IPC's adaptive barrier
+   stiffness: κ is doubled (up to ``kappa_max_factor`` × its starting value) while the
+   smallest gap is below 1e-2·d̂ and still shrinking between iterates
+   (:func:`~jaxelastic.contact.barrier.kappa_update`); the solve then continues on the
+   stiffer potential, reported as ``stats["kappa"]`` and used by the implicit derivatives.
+   Contact forces of such a solution need that κ: :func:`contact_potential`.
 
 Users call :func:`jaxelastic.solve`; :meth:`Newton.minimize` is the non-differentiated loop
 it runs.
@@ -41,6 +47,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from .. import potential as pot_mod
+from ..contact.barrier import kappa_update
 from ..energy import assemble, hvp
 from ..kinematics import deformation_gradients, det
 from ..loads import Dirichlet
@@ -48,7 +55,7 @@ from ..potential import Potential
 from .linear import NewtonSystem
 from .results import RUNNING, Solution, Status
 
-__all__ = ["Newton", "HESSIANS", "host_minimize"]
+__all__ = ["Newton", "HESSIANS", "host_minimize", "contact_potential"]
 
 HESSIANS = ("element", "hvp", "projected")
 
@@ -78,6 +85,13 @@ class Newton:
         require_positive_J: also reject trial steps where any element has J ≤ 0 (for user
             materials that return finite garbage there); the built-in neo-Hookean returns
             +inf, which the line search rejects anyway.
+        kappa_max_factor: with a contact term, the in-solve κ adaptation may raise the
+            barrier stiffness to this multiple of ``pot.contact.kappa``: 1 (default) is
+            off, IPC uses 100 (:data:`~jaxelastic.contact.barrier.KAPPA_MAX_FACTOR`).
+            Off by default because the adapted κ lives only in the solution
+            (``stats["kappa"]``): forces computed from ``pot.contact`` would use the old
+            one (use :func:`contact_potential`), and in dynamics every step adapts afresh
+            from ``pot.contact.kappa``.
     """
 
     rtol: float = 1e-8
@@ -89,12 +103,15 @@ class Newton:
     ls_max: int = 40
     armijo: float = 1e-4
     require_positive_J: bool = False
+    kappa_max_factor: float = 1.0
 
     def __post_init__(self):
         if self.hessian not in HESSIANS:
             raise ValueError(f"hessian must be one of {HESSIANS}, got {self.hessian!r}")
         if int(self.max_steps) < 1:
             raise ValueError(f"max_steps must be >= 1, got {self.max_steps!r}")
+        if not self.kappa_max_factor >= 1:
+            raise ValueError(f"kappa_max_factor must be >= 1, got {self.kappa_max_factor!r}")
         if not (self.rtol >= 0 and self.atol >= 0) or (self.rtol == 0 and self.atol == 0):
             raise ValueError(
                 f"need rtol >= 0 and atol >= 0, not both 0; got rtol={self.rtol!r}, "
@@ -155,8 +172,16 @@ def _system(s: Newton, pot: Potential, x, free, Ke=None) -> NewtonSystem:
 
         return A
 
+    # self-contact pairs couple nodes of different elements: that part of the Hessian is
+    # an operator added to the element one (the node-diagonal part is inside Ke)
+    cpl = None if pot.contact is None else pot.contact.coupling(x)
+
+    def KV(K, v) -> jax.Array:
+        Kv = pot_mod.element_hessian_vp(pot, K, v)
+        return Kv if cpl is None else Kv + cpl(v)
+
     def operator(K):
-        return masked(lambda v: pot_mod.element_hessian_vp(pot, K, v))
+        return masked(lambda v: KV(K, v))
 
     if s.hessian == "hvp":
 
@@ -167,7 +192,7 @@ def _system(s: Newton, pot: Potential, x, free, Ke=None) -> NewtonSystem:
         assert Ke_el is not None  # need_Ke holds for every hessian but "hvp"
 
         def H(v):
-            return pot_mod.element_hessian_vp(pot, Ke_el, v)
+            return KV(Ke_el, v)
 
     return NewtonSystem(pot=pot, x=x, free=free, Ke=Ke, H=H, A=masked(H), operator=operator)
 
@@ -178,9 +203,10 @@ def is_quadratic(pot: Potential) -> bool:
     True when ψ is marked ``psi.is_quadratic = True`` (the built-in ``linear`` material;
     mark your own quadratic ψ likewise) and the kinematics are linear in x (not F-bar,
     whose F̄ = (J̄/J)^{1/d} F is nonlinear). Inertia, damping and external forces keep Π
-    quadratic.
+    quadratic; a contact term (the log barrier) does not.
     """
-    return getattr(pot.psi, "is_quadratic", False) is True and pot.mesh.formulation != "fbar"
+    quadratic_psi = getattr(pot.psi, "is_quadratic", False) is True
+    return quadratic_psi and pot.mesh.formulation != "fbar" and pot.contact is None
 
 
 def _newton_rhs(s: Newton, system: NewtonSystem, g, dD, ref):
@@ -258,8 +284,50 @@ def _line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near, floor):
     return lax.while_loop(cond, body, start)
 
 
+def _with_kappa(pot: Potential, c: dict) -> Potential:
+    """``pot`` with the contact stiffness of the carry (unchanged without contact)."""
+    if "kappa" not in c:
+        return pot
+    return pot.replace(contact=pot.contact.replace(kappa=c["kappa"]))
+
+
+def contact_potential(pot: Potential, res: Solution) -> Potential:
+    """The potential a solve ``res`` of ``pot`` converged on: ``pot`` with its contact κ
+    scaled to ``res.stats["kappa"]`` (the in-solve adaptation; the ratio is a constant,
+    so derivatives with respect to κ pass through). Unchanged without contact."""
+    if pot.contact is None or "kappa" not in res.stats:
+        return pot
+    k = pot.contact.kappa
+    ratio = lax.stop_gradient(res.stats["kappa"] / k)
+    return pot.replace(contact=pot.contact.replace(kappa=k * ratio))
+
+
+def _adapt_kappa(s: Newton, pot, c: dict) -> dict:
+    """The carry ``c`` after IPC's κ update (:func:`~jaxelastic.contact.barrier.kappa_update`):
+    a new κ re-evaluates Π and its gradient at the accepted iterate and keeps the solve
+    running (a status reached with the old κ does not hold for the new one)."""
+    if "kappa" not in c:
+        return c
+    contact = pot.contact
+    gap = contact.min_distance(c["x"])
+    kappa = kappa_update(c["kappa"], c["kappa_max"], gap, c["gap"], contact.dhat)
+    changed = kappa != c["kappa"]
+
+    def refresh():
+        e, g = _value_and_grad(s, pot.replace(contact=contact.replace(kappa=kappa)), c["x"])
+        return e, g
+
+    energy, g = lax.cond(changed, refresh, lambda: (c["energy"], c["g"]))
+    st = c["status"]
+    fine = (st == RUNNING) | (st == Status.SUCCESS)
+    more = changed & fine & (c["k"] < s.max_steps)
+    st = jnp.where(more, RUNNING, st).astype(jnp.int32)
+    return dict(c, kappa=kappa, gap=gap, energy=energy, g=g, status=st)
+
+
 def _iteration(s: Newton, pot, bc: Dirichlet, c: dict, length) -> dict:
     """One Newton iteration on the loop carry ``c``."""
+    pot = _with_kappa(pot, c)
     system, dD, rhs, tol, bn = _linear_system(s, pot, bc, c)
     lin = s.linear.newton_step(system, rhs, tol)
     return _iteration_end(s, pot, bc, c, length, system, dD, bn, lin)
@@ -294,7 +362,8 @@ def _iteration_end(s: Newton, pot, bc: Dirichlet, c: dict, length, system, dD, b
     st = jnp.where(acc, st, Status.LINE_SEARCH_FAILED)
     its = lin.stats["iterations"].astype(jnp.int32)
     neg = lin.status == Status.NEGATIVE_CURVATURE
-    return dict(
+    new = dict(
+        c,
         x=x_new,
         g=g_new,
         energy=jnp.where(acc, et, c["energy"]),
@@ -309,6 +378,7 @@ def _iteration_end(s: Newton, pot, bc: Dirichlet, c: dict, length, system, dD, b
         proj=c["proj"] + lin.stats["projected"].astype(jnp.int32),
         floor=floor,
     )
+    return _adapt_kappa(s, pot, new)
 
 
 STALL = 0.5
@@ -390,7 +460,16 @@ def _initial_carry(s: Newton, pot, bc: Dirichlet, x0) -> dict:
     inverted = jnp.where(_min_J(pot, x0) <= 0, Status.INVERTED, Status.NONFINITE)
     st0 = jnp.where(jnp.isfinite(e0), st0, inverted)
     zero = jnp.asarray(0, jnp.int32)
+    extra = {}
+    if pot.contact is not None and s.kappa_max_factor > 1:  # in-solve κ adaptation (IPC)
+        k0 = jnp.asarray(pot.contact.kappa, dtype)
+        extra = dict(
+            kappa=k0,
+            kappa_max=k0 * s.kappa_max_factor,
+            gap=pot.contact.min_distance(x0).astype(dtype),
+        )
     return dict(
+        **extra,
         x=x0,
         g=g0,
         energy=e0,
@@ -439,6 +518,8 @@ def _solution(c: dict) -> Solution:
         residual_floor=c["floor"],
         wall_time=jnp.asarray(jnp.nan, c["x"].dtype),
     )
+    if "kappa" in c:
+        stats["kappa"] = c["kappa"]
     return Solution(x=c["x"], status=c["status"], stats=stats)
 
 
@@ -492,7 +573,12 @@ def host_minimize(s: Newton, pot: Potential, bc: Dirichlet, x0) -> Solution:
         raise ValueError("host_minimize needs a bound linear solver (use je.solve)")
     c, length = _host_start(s, pot, bc, x0)
     while int(c["status"]) == RUNNING:
-        Ke, rhs, tol, bn = _host_system(s, pot, bc, c)
-        lin = _host_linear(s, pot, bc, c["x"], Ke, rhs, tol)
-        c = _host_update(s, pot, bc, c, length, Ke, bn, lin)
+        p = _with_kappa(pot, c)  # the adapted contact stiffness, if any
+        Ke, rhs, tol, bn = _host_system(s, p, bc, c)
+        lin = _host_linear(s, p, bc, c["x"], Ke, rhs, tol)
+        if pot.contact is not None:  # self-contact: broad phase over the coming step
+            step = jnp.where(bc.mask, bc.values - c["x"], lin.x)
+            pot = pot.replace(contact=pot.contact.refreshed(c["x"], step))
+            p = _with_kappa(pot, c)
+        c = _host_update(s, p, bc, c, length, Ke, bn, lin)
     return _host_solution(c)

@@ -17,11 +17,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
+from ..distributed import host_array
 from ..loads import Dirichlet
 from ..potential import Potential
 from .adjoint import ImplicitAdjoint, differentiable_minimize
 from .linear import AMG, Direct, bind_linear
-from .newton import Newton, host_minimize
+from .newton import Newton, host_minimize, is_quadratic
 from .pattern import rigid_body_modes
 from .results import Solution, SolveError, Status
 
@@ -33,13 +34,14 @@ def is_traced(*trees) -> bool:
     return any(isinstance(a, Tracer) for t in trees for a in jax.tree_util.tree_leaves(t))
 
 
-def bind_solver(solver: Newton, mesh, bc: Dirichlet) -> Newton:
+def bind_solver(solver: Newton, mesh, bc: Dirichlet, *, quadratic: bool = False) -> Newton:
     """``solver`` with its linear solver resolved and bound for ``mesh`` and ``bc.mask``
-    (:func:`~jaxelastic.solvers.linear.bind_linear`); call it once outside jit to reuse a
-    host factorisation pattern across many solves."""
+    (:func:`~jaxelastic.solvers.linear.bind_linear`; ``quadratic``: the potential is
+    quadratic, see there); call it once outside jit to reuse a host factorisation pattern
+    across many solves."""
     if not isinstance(solver, Newton):
         raise TypeError(f"solver must be a je.Newton(...), got {type(solver).__name__}")
-    linear = bind_linear(solver.linear, mesh, bc)
+    linear = bind_linear(solver.linear, mesh, bc, quadratic=quadratic)
     return solver if linear is solver.linear else dataclasses.replace(solver, linear=linear)
 
 
@@ -93,9 +95,12 @@ def _free_rigid_motions(pot: Potential, bc: Dirichlet) -> list[str]:
     A static potential (no mass term) is invariant under them, so its Hessian is singular
     and the solve has no unique answer; under a load it does not converge at all.
     """
-    X = np.asarray(pot.mesh.points, dtype=np.float64)
+    X = host_array(pot.mesh.points).astype(np.float64)  # host_array: across processes too
     d = X.shape[1]
-    mask = np.asarray(bc.mask, dtype=bool).reshape(-1)
+    mask = host_array(bc.mask).astype(bool)
+    inc = host_array(pot.mesh.incidence)
+    in_cells = inc[:, 0] < pot.mesh.cells.size  # not the padding of a sharded mesh (je.shard)
+    X, mask = X[in_cells], mask[in_cells].reshape(-1)
     R = rigid_body_modes(X)  # (n·d, m): translations then rotations
     m = R.shape[1]
     RD = R[mask]
@@ -140,6 +145,13 @@ def _check_constrained(pot: Potential, bc: Dirichlet) -> None:
         )
 
 
+SELF_CONTACT_RESTARTS = 20
+"""Outside jit, a solve on a device linear solver whose iterate ran into the
+self-contact motion bound without converging is continued this many times from where it
+stopped, each time after a new broad phase (host linear solvers re-run the broad phase
+between Newton iterations instead)."""
+
+
 def solve(
     pot: Potential,
     bc: Dirichlet,
@@ -159,13 +171,17 @@ def solve(
     solve with the Hessian at x*), never from the Newton iterations; if the solve failed
     they are NaN. Derivatives with respect to ``x0`` are zero.
 
+    Long because: one entry point dispatches three drivers (traced → the compiled solve;
+    host back ends → the host Newton loop; self-contact → broad-phase restarts), each a few
+    lines that read best side by side.
+
     Args:
         pot: the :class:`~jaxelastic.potential.Potential` (elastic energy, loads, inertia).
         bc: :class:`~jaxelastic.loads.Dirichlet` data.
         x0: ``(n_nodes, dim)`` initial positions (default: the rest shape; Dirichlet dofs
             need not be in place).
         solver: :class:`~jaxelastic.solvers.newton.Newton` settings and linear solver
-            (default ``linear="auto"``: sparse Cholesky up to 10k dofs in 3D, AMG-CG above,
+            (default ``linear="auto"``: sparse Cholesky up to 25k dofs in 3D, AMG-CG above,
             matrix-free CG on traced meshes).
         adjoint: :class:`~jaxelastic.solvers.adjoint.ImplicitAdjoint` settings of the
             derivative solves.
@@ -181,13 +197,20 @@ def solve(
         jit ``stats["wall_time"]`` is the wall-clock time of the solve in seconds).
     """
     x0 = _check_inputs(pot, bc, x0)
-    solver = bind_solver(solver, pot.mesh, bc)
+    solver = bind_solver(solver, pot.mesh, bc, quadratic=is_quadratic(pot))
     if not isinstance(adjoint, ImplicitAdjoint):
         raise TypeError(f"adjoint must be je.ImplicitAdjoint(...), got {type(adjoint).__name__}")
     if is_traced(pot, bc, x0):
+        if getattr(solver.linear, "hierarchy", None) is None:
+            # one compiled solve under an eager jax.grad/vmap too (op by op it took ~5x
+            # the compile of the whole, and as long again on every call); in a jit: inlined.
+            # (A Multilevel hierarchy would leak the inner jit's tracers into the adjoint.)
+            return _solve_jit(pot, bc, x0, solver, adjoint)
         return differentiable_minimize(solver, adjoint, pot, bc, x0)
     _check_constrained(pot, bc)
     t0 = time.perf_counter()
+    if pot.contact is not None:  # self-contact: the broad phase at x0 (host; else a no-op)
+        pot = pot.replace(contact=pot.contact.refreshed(x0))
     if isinstance(solver.linear, (Direct, AMG)):
         # Newton's loop on the host: its compiled pieces, but for the linear solve's
         # callback, go to the persistent compilation cache (see newton.host_minimize)
@@ -195,6 +218,11 @@ def solve(
     else:
         static, hierarchy = _split_hierarchy(solver)
         res = jax.block_until_ready(_solve_jit(pot, bc, x0, static, adjoint, hierarchy))
+        for _ in range(SELF_CONTACT_RESTARTS):  # a jitted solve held back by the motion
+            if bool(res.ok) or pot.contact is None or not pot.contact.outran(res.x):
+                break  # bound of its self-contact candidates: new broad phase, go on
+            pot = pot.replace(contact=pot.contact.refreshed(res.x, force=True))
+            res = jax.block_until_ready(_solve_jit(pot, bc, res.x, static, adjoint, hierarchy))
     stats = dict(res.stats, wall_time=time.perf_counter() - t0)
     res = res._replace(stats=stats)
     if throw and int(res.status) != Status.SUCCESS:
