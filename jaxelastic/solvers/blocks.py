@@ -16,7 +16,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-__all__ = ["spd_block_inverse"]
+__all__ = ["spd_block_inverse", "block_inverse_or_diagonal"]
 
 
 def spd_block_inverse(B: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -64,3 +64,23 @@ def spd_block_inverse(B: jax.Array) -> tuple[jax.Array, jax.Array]:
             row.append(acc)
         rows.append(jnp.stack(row, axis=-1))
     return jnp.stack(rows, axis=-2), ok
+
+
+def block_inverse_or_diagonal(B: jax.Array, lapack: bool = True) -> jax.Array:
+    """Inverses of the symmetric blocks ``B`` ``(n, b, b)``; a block that is not positive
+    definite falls back to ``diag(1/|B_ii|)`` (1 where ``B_ii = 0``).
+
+    ``lapack=True``: Cholesky test + LAPACK ``inv`` (bit-identical in every compiled
+    program); ``lapack=False``: :func:`spd_block_inverse` (no LAPACK call, as a sharded
+    program on several XLA:CPU devices needs; equal to round-off).
+    """
+    eye = jnp.eye(B.shape[-1], dtype=B.dtype)[None]
+    if lapack:
+        L = jnp.linalg.cholesky(B)
+        ok = jnp.all(jnp.isfinite(L), axis=(1, 2))
+        inv = jnp.linalg.inv(jnp.where(ok[:, None, None], B, eye))
+    else:
+        inv, ok = spd_block_inverse(B)
+    diag = jnp.abs(jnp.diagonal(B, axis1=1, axis2=2))
+    diag = jnp.where(diag > 0, diag, 1.0)
+    return jnp.where(ok[:, None, None], inv, eye / diag[:, :, None])

@@ -38,7 +38,7 @@ from ..energy import project_psd
 from ..potential import Potential, mass_diagonal, node_hessian_blocks
 from ..sharding import is_sharded
 from .backends import available_direct_backends
-from .blocks import spd_block_inverse
+from .blocks import block_inverse_or_diagonal
 from .host import ContentCache, HostLinearSolver, content_key
 from .multilevel import (
     Hierarchy,
@@ -181,19 +181,7 @@ def block_jacobi(blocks: jax.Array, free: jax.Array, *, lapack: bool = True):
     eye = jnp.eye(d, dtype=blocks.dtype)[None]  # (1, d, d)
     fm = free.astype(blocks.dtype)
     B = blocks * fm[:, :, None] * fm[:, None, :] + eye * (1.0 - fm)[:, :, None]
-    if lapack:
-        L = jnp.linalg.cholesky(B)
-        ok = jnp.all(jnp.isfinite(L), axis=(1, 2))
-        inv = jnp.linalg.inv(jnp.where(ok[:, None, None], B, eye))
-    else:
-        inv, ok = spd_block_inverse(B)  # no LAPACK: safe on several XLA:CPU devices
-    diag = jnp.abs(jnp.diagonal(B, axis1=1, axis2=2))
-    diag = jnp.where(diag > 0, diag, 1.0)
-    Binv = jnp.where(
-        ok[:, None, None],
-        inv,
-        eye / diag[:, :, None],
-    )
+    Binv = block_inverse_or_diagonal(B, lapack)
 
     def apply(r):
         return jnp.einsum("nij,nj->ni", Binv, r)

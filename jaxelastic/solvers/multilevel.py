@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from .blocks import spd_block_inverse
+from .blocks import block_inverse_or_diagonal
 from .pattern import rigid_body_modes
 
 __all__ = [
@@ -528,20 +528,10 @@ def _add_dead(nxt: Level, Ac: jax.Array) -> jax.Array:
 
 
 def _block_inverse(D: jax.Array, lapack: bool = True) -> jax.Array:
-    """Inverses of ``(n, b, b)`` diagonal blocks; a block that is not positive definite
-    falls back to ``1/|diag|`` (as :func:`~jaxelastic.solvers.linear.block_jacobi`, whose
-    ``lapack`` flag this shares: False in sharded programs)."""
-    b = D.shape[-1]
-    eye = jnp.eye(b, dtype=D.dtype)[None]
-    if lapack:
-        L = jnp.linalg.cholesky(D)
-        ok = jnp.all(jnp.isfinite(L), axis=(1, 2))
-        inv = jnp.linalg.inv(jnp.where(ok[:, None, None], D, eye))
-    else:
-        inv, ok = spd_block_inverse(D)  # no LAPACK: safe on several XLA:CPU devices
-    diag = jnp.abs(jnp.diagonal(D, axis1=1, axis2=2))
-    diag = jnp.where(diag > 0, diag, 1.0)
-    return jnp.where(ok[:, None, None], inv, eye / diag[:, :, None])
+    """Inverses of ``(n, b, b)`` diagonal blocks with the ``1/|diag|`` fallback of
+    :func:`~jaxelastic.solvers.linear.block_jacobi` (``lapack=False`` in sharded programs,
+    see :func:`~jaxelastic.solvers.blocks.block_inverse_or_diagonal`)."""
+    return block_inverse_or_diagonal(D, lapack)
 
 
 def _sum_dot(a, b):
