@@ -438,6 +438,85 @@ def test_amg_reuse_and_refresh():
         np.testing.assert_allclose(z[:, 1], s.precondition(rhs.reshape(-1)), rtol=1e-12)
 
 
+def test_amg_v_cycle_is_pyamgs():
+    """The V-cycle traversed in AMGSolver is PyAMG's one-cycle solve, bit for bit, for
+    one and for several right-hand sides."""
+    mesh, fixed, Ke, md, rhs = _problem("twist")
+    host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
+    assert host.factor(Ke, md, TOKEN) == SUCCESS
+    ml = host.backend.ml
+    assert ml is not None and len(ml.levels) >= 3  # the recursion is exercised
+    b = rhs.reshape(-1).copy()
+    b[fixed] = 0.0
+    reference = ml.aspreconditioner(cycle="V").matvec
+    assert np.array_equal(host.backend.precondition(b), reference(b))
+    B = np.stack([b, 2.0 * b + 1.0], axis=1)
+    z = host.backend.precondition(B)
+    assert np.array_equal(z[:, 1], reference(np.ascontiguousarray(B[:, 1])))
+
+
+def test_amg_rebuilds_on_slower_convergence():
+    """Between the ``reuse`` cap, the hierarchy is rebuilt only when the residual norms
+    handed to the preconditioner show a markedly slower CG than the first one measured
+    after the last rebuild (REBUILD_DIGITS_RATIO of its digits per iteration)."""
+    mesh, fixed, Ke, md, rhs = _problem("twist")
+    host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
+    s = AMGSolver(mesh.points, fixed, sa_options=dict(max_coarse=10), pattern=host.pattern)
+    K = host.assemble(Ke, md)
+    r = rhs.reshape(-1)
+
+    def solve_with_rate(rho, its=4):  # the residuals a CG converging at ρ would hand it
+        for i in range(its):
+            s.precondition(r * rho**i)
+
+    s.update(K)
+    assert s.rebuilt and s.rate is None
+    solve_with_rate(0.1)
+    s.update(K)  # the reference rate, measured
+    assert not s.rebuilt and s.rate == pytest.approx(0.1)
+    solve_with_rate(0.15)  # 0.82 of the digits per iteration: keep
+    s.update(K)
+    assert not s.rebuilt
+    solve_with_rate(0.3)  # 0.52 of the digits per iteration: rebuild
+    s.update(K)
+    assert s.rebuilt and s.rate == pytest.approx(0.3)
+    # a rise (the start of another solve) is not a ratio; too few ratios measure nothing
+    s.precondition(r)
+    s.precondition(0.5 * r)
+    s.precondition(10.0 * r)
+    s.update(K)
+    assert s.rate is None and not s.rebuilt
+
+
+def test_amg_fine_refresh():
+    """``refresh="fine"`` sets the new matrix on the finest level only, and refreshes the
+    coarse operators (Galerkin) once the CG's convergence per iteration degrades."""
+    mesh, fixed, Ke, md, rhs = _problem("twist")
+    host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
+    opts = dict(sa_options=dict(max_coarse=10), pattern=host.pattern, refresh="fine")
+    s = AMGSolver(mesh.points, fixed, **opts)
+    K1, K2 = host.assemble(Ke, md), host.assemble(1.3 * Ke, md)
+    r = rhs.reshape(-1)
+    s.update(K1)
+    assert s.ml is not None
+    coarse = s.ml.levels[1].A
+    for i in range(4):
+        s.precondition(r * 0.1**i)
+    s.update(K2)  # converged fast: fine level only
+    assert not s.rebuilt and s.ml.levels[1].A is coarse
+    np.testing.assert_array_equal(s.ml.levels[0].A.toarray(), s._amg_matrix(K2).toarray())
+    for i in range(4):
+        s.precondition(r * 0.2**i)  # 0.70 of the digits per iteration: Galerkin refresh
+    s.update(K2)
+    assert not s.rebuilt and s.ml.levels[1].A is not coarse
+    Rc = s.ml.levels[0].R @ s._amg_matrix(K2) @ s.ml.levels[0].P
+    np.testing.assert_allclose(s.ml.levels[1].A.toarray(), Rc.toarray(), rtol=1e-12, atol=1e-12)
+    _, its = _pcg(K2, r, s.precondition)
+    assert its < 30
+    with pytest.raises(ValueError, match="refresh"):
+        AMGSolver(mesh.points, fixed, refresh="coarse")
+
+
 def test_amg_flags_nonpositive_diagonal():
     mesh, fixed, Ke, md, rhs = _problem("cantilever")
     host = _host(mesh, fixed, "amg")

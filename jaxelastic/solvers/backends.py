@@ -547,13 +547,25 @@ class AMGSolver:
         points: ``(n_nodes, dim)`` node positions for
             :func:`~jaxelastic.solvers.pattern.rigid_body_modes`.
         fixed: ``(n_nodes*dim,)`` bool Dirichlet mask (rows of the modes zeroed).
-        reuse: rebuild the hierarchy (aggregates, prolongators) every ``reuse`` calls to
-            :meth:`update`; 1 rebuilds every time. Measured on the twist (5 matrices along a
-            0→0.4 rad path, n = 29): rebuilding every time 8.7 s CPU, Galerkin refresh
-            with ``reuse=5`` 5.8 s at unchanged iteration counts (13–14), hence the default.
+        reuse: rebuild the hierarchy (aggregates, prolongators) at the latest every
+            ``reuse`` calls to :meth:`update`; 1 rebuilds every time. In between,
+            :meth:`update` rebuilds only when the CG that used the hierarchy since the
+            previous update converged markedly slower than the first one after the last
+            rebuild (fewer than :data:`REBUILD_DIGITS_RATIO` of its digits per iteration,
+            from the residual norms :meth:`precondition` was given), and refreshes
+            otherwise. Measured on the twist (5 matrices along a 0→0.4 rad path, n = 29):
+            rebuilding every time 8.7 s CPU, Galerkin refresh 5.8 s at unchanged iteration
+            counts (13–14); one rebuild costs about 15 refreshes (3.5–4 s against
+            0.2–0.35 s CPU at n = 29).
         refresh: between rebuilds, ``"galerkin"`` keeps P and R but recomputes the
-            coarse operators ``R A P`` and smoothers for the new matrix; ``"none"`` keeps
-            the old hierarchy as is (a preconditioner for a nearby matrix).
+            coarse operators ``R A P`` and smoothers for the new matrix; ``"fine"`` sets
+            the new matrix and its smoothers on the finest level only and keeps the coarse
+            operators until the CG's convergence per iteration degrades (below
+            :data:`REFRESH_DIGITS_RATIO` of the reference's digits per iteration: then a
+            Galerkin refresh); ``"none"`` keeps the old hierarchy as is (a preconditioner
+            for a nearby matrix). Measured on warm twist solves at n = 29 (loaded machine):
+            ``"fine"`` 7.5–7.8 s CPU and 34 CG iterations against ``"galerkin"``'s
+            8.7–9.0 s and 29 (the Galerkin products ``R A P`` are 0.2–0.35 s CPU a step).
         cycle: multigrid cycle of one :meth:`precondition` (``"V"``, ``"W"``, ``"F"``).
         sa_options: overrides for ``pyamg.smoothed_aggregation_solver``.
         block: hand PyAMG the matrix as BSR with ``(dim, dim)`` node blocks (node-wise
@@ -567,7 +579,7 @@ class AMGSolver:
         points,
         fixed=None,
         *,
-        reuse: int = 5,
+        reuse: int = 50,
         refresh: str = "galerkin",
         cycle: str = "V",
         sa_options: dict | None = None,
@@ -576,8 +588,8 @@ class AMGSolver:
     ):
         if int(reuse) < 1:
             raise ValueError(f"reuse must be >= 1, got {reuse!r}")
-        if refresh not in ("galerkin", "none"):
-            raise ValueError(f"refresh must be 'galerkin' or 'none', got {refresh!r}")
+        if refresh not in ("galerkin", "fine", "none"):
+            raise ValueError(f"refresh must be 'galerkin', 'fine' or 'none', got {refresh!r}")
         pts = np.asarray(points, dtype=np.float64)
         self.dim = pts.shape[1]
         self.B = rigid_body_modes(pts, fixed)
@@ -600,6 +612,9 @@ class AMGSolver:
         self._updates_since_build = 0
         self.setup_time = 0.0
         self.rebuilt = False
+        self._norms: list[float] = []  # ‖r‖ of every single-column precondition call
+        self._rate_ref: float | None = None  # first measured CG rate after a rebuild
+        self.rate: float | None = None  # CG rate of the uses since the previous update
 
     def _amg_matrix(self, K):
         if not self.block or self.dim == 1:
@@ -618,18 +633,56 @@ class AMGSolver:
             raise ValueError(f"matrix has {n} rows, the modes {self.B.shape[0]}")
         self._M = None
         A = self._amg_matrix(K)
-        if self.ml is None or self._updates_since_build >= self.reuse:
+        self.rate = _convergence_factor(self._norms)
+        self._norms = []
+        if self._rate_ref is None:
+            self._rate_ref = self.rate  # the first measured use after a rebuild
+        if self.ml is None or self._updates_since_build >= self.reuse or self._degraded():
             self.ml = None
             self.ml = pyamg.smoothed_aggregation_solver(A, B=self.B, **self.sa_options)
             self._updates_since_build = 1
+            self._rate_ref = None
             self.rebuilt = True
         else:
-            if self.refresh == "galerkin":
+            if self.refresh == "galerkin" or (self.refresh == "fine" and self._degraded(True)):
                 self._galerkin(A)
+            elif self.refresh == "fine":
+                self._fine(A)
             self._updates_since_build += 1
             self.rebuilt = False
-        self._M = self.ml.aspreconditioner(cycle=self.cycle).matvec
+        self._M = self._cycle_function()
         self.setup_time = time.perf_counter() - t0
+
+    def _degraded(self, refresh: bool = False) -> bool:
+        """Whether the uses since the previous update converged markedly slower than the
+        first measured use after the last rebuild: below :data:`REBUILD_DIGITS_RATIO`
+        (``refresh``: :data:`REFRESH_DIGITS_RATIO`) of its digits per iteration."""
+        ref, rate = self._rate_ref, self.rate
+        if ref is None or rate is None or rate <= ref:
+            return False
+        ratio = REFRESH_DIGITS_RATIO if refresh else REBUILD_DIGITS_RATIO
+        return bool(np.log(rate) > ratio * np.log(ref))  # digits per iteration: −log ρ
+
+    def _cycle_function(self):
+        """``r ↦ M⁻¹r`` (one cycle from a zero guess) of the current hierarchy.
+
+        V-cycles traverse the levels here, as PyAMG's ``MultilevelSolver.solve`` does with
+        ``maxiter=1`` but without the residual norms and the two extra fine-level products
+        it computes around the cycle: the same result bit for bit, 2.4× cheaper (n = 29:
+        0.046 s against 0.11–0.12 s CPU per application).
+        """
+        ml = self.ml
+        assert ml is not None
+        if self.cycle != "V" or len(ml.levels) == 1:
+            return ml.aspreconditioner(cycle=self.cycle).matvec
+        levels, coarse = ml.levels, ml.coarse_solver
+
+        def cycle(b):
+            x = np.zeros_like(b)
+            _v_cycle(levels, coarse, 0, x, b)
+            return x
+
+        return cycle
 
     def _galerkin(self, A):
         from pyamg.multilevel import coarse_grid_solver
@@ -644,6 +697,14 @@ class AMGSolver:
             hi.A = Ac.tobsr(blocksize=hi.A.blocksize) if hi.A.format == "bsr" else Ac.tocsr()
         change_smoothers(ml, self.sa_options["presmoother"], self.sa_options["postsmoother"])
         ml.coarse_solver = coarse_grid_solver(self.sa_options["coarse_solver"])
+
+    def _fine(self, A):
+        """The new matrix and its smoothers on the finest level; coarse operators kept."""
+        from pyamg.relaxation.smoothing import change_smoothers
+
+        assert self.ml is not None
+        self.ml.levels[0].A = A
+        change_smoothers(self.ml, self.sa_options["presmoother"], self.sa_options["postsmoother"])
 
     @property
     def ready(self) -> bool:
@@ -663,20 +724,69 @@ class AMGSolver:
         if self._M is None:
             raise RuntimeError("call update(K) before precondition(r)")
         r = np.asarray(r, dtype=np.float64)
+        if r.ndim == 2 and r.shape[1] == 1:  # one right-hand side: a CG iteration
+            return self.precondition(r[:, 0])[:, None]
         if r.ndim == 1:
+            r = np.ascontiguousarray(r)
+            self._norms.append(float(np.sqrt(np.einsum("i,i->", r, r))))  # (no BLAS call)
             return np.asarray(self._M(r), dtype=np.float64).reshape(r.shape)
         return np.stack([self._M(np.ascontiguousarray(c)) for c in r.T], axis=1)
 
     def info(self) -> dict:
-        """``levels``, ``operator_complexity``, ``rebuilt``, ``setup_time`` of the hierarchy."""
+        """``levels``, ``operator_complexity``, ``rebuilt``, ``setup_time`` of the hierarchy
+        and ``rate`` (the CG's mean residual reduction per iteration measured at the last
+        :meth:`update`, or None)."""
         if self.ml is None:
-            return dict(levels=0, operator_complexity=0.0, rebuilt=False, setup_time=0.0)
+            return dict(levels=0, operator_complexity=0.0, rebuilt=False, setup_time=0.0, rate=None)
         return dict(
             levels=len(self.ml.levels),
             operator_complexity=float(self.ml.operator_complexity()),
             rebuilt=self.rebuilt,
             setup_time=self.setup_time,
+            rate=self.rate,
         )
+
+
+REFRESH_DIGITS_RATIO = 0.85
+"""With ``refresh="fine"``, :class:`AMGSolver` recomputes its coarse operators (Galerkin)
+when the CG it preconditioned since the previous update gained fewer than this fraction of
+the digits per iteration of the first measured CG after the last rebuild."""
+
+REBUILD_DIGITS_RATIO = 2.0 / 3.0
+""":class:`AMGSolver` rebuilds its hierarchy before ``reuse`` updates when the CG it
+preconditioned since the previous update gained fewer than this fraction of the digits per
+iteration of the first measured CG after the last rebuild (iterations per digit up 50 %)."""
+
+
+def _convergence_factor(norms: list[float]) -> float | None:
+    """Mean residual reduction per CG iteration ``ρ`` from the norms of the residuals
+    handed to successive preconditioner calls: the geometric mean of the ratios of
+    consecutive norms, where a rise above 2× marks the start of another solve and is
+    skipped; None with fewer than two ratios."""
+    logs = [
+        float(np.log(b / a))
+        for a, b in zip(norms[:-1], norms[1:], strict=True)
+        if a > 0 and 0 < b <= 2.0 * a
+    ]
+    if len(logs) < 2:
+        return None
+    return float(np.exp(np.mean(logs)))
+
+
+def _v_cycle(levels, coarse_solver, lvl: int, x, b) -> None:
+    """One V-cycle on level ``lvl`` of a PyAMG hierarchy, updating ``x`` ``(n_lvl,)`` in
+    place (the recursion of PyAMG's ``MultilevelSolver.solve(..., cycle="V")``)."""
+    level = levels[lvl]
+    A = level.A
+    level.presmoother(A, x, b)
+    coarse_b = level.R @ (b - A @ x)
+    coarse_x = np.zeros_like(coarse_b)
+    if lvl == len(levels) - 2:
+        coarse_x[:] = coarse_solver(levels[-1].A, coarse_b)
+    else:
+        _v_cycle(levels, coarse_solver, lvl + 1, coarse_x, coarse_b)
+    x += level.P @ coarse_x
+    level.postsmoother(A, x, b)
 
 
 def make_backend(kind: str, points=None, fixed=None, pattern=None, **opts):

@@ -131,7 +131,8 @@ class HostLinearSolver:
     Counters: ``calls`` (factor + apply), ``factorizations``, ``applications``;
     ``last_info`` describes the last factorisation (``status``, ``assemble_time``,
     ``setup_time``, and ``backend``/``method``/``positive_definite`` (direct) or ``levels``,
-    ``operator_complexity``, ``rebuilt`` (AMG)).
+    ``operator_complexity``, ``rebuilt``, ``rate`` (AMG: the CG's mean residual reduction
+    per iteration since the previous factorisation, or None)).
     """
 
     def __init__(self, cells, points, fixed, kind: str = "direct", **opts):

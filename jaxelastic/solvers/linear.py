@@ -489,13 +489,15 @@ class AMG(_Host):
     the host: one V-cycle per CG iteration through a callback.
 
     Attributes:
-        reuse: rebuild the hierarchy every ``reuse`` factorisations (Galerkin refresh of
-            the coarse operators in between).
+        reuse: rebuild the hierarchy at the latest every ``reuse`` factorisations, and
+            before that only when the CG's convergence per iteration has degraded
+            (:class:`~jaxelastic.solvers.backends.AMGSolver`); Galerkin refresh of the
+            coarse operators in between.
         max_iter: CG iteration cap.
         backend: the bound host back end (set by :func:`bind_linear`).
     """
 
-    reuse: int = 5
+    reuse: int = 50
     max_iter: int = 2000
 
     kind = "amg"
