@@ -158,7 +158,7 @@ def _step_potential(base: Potential, state: State, integ: Integrator, bdf2_now):
         kw.update(x_prev=x_ref, stiffness_damping=integ.beta * dt_factor)
     if base.contact is not None:  # friction lagged at x_n; obstacles at t + h
         c = base.contact.at_time(state.t)
-        c = c.lag(x) if c.friction is not None else c
+        c = c.lag(x) if c.has_friction else c
         kw.update(contact=c.at_time(state.t + h))
     return base.replace(**kw)
 
@@ -507,6 +507,9 @@ def simulate(
             # three compiled pieces: the step potential, the solve (one compilation shared
             # with every solve of a potential of this structure, e.g. static_potential)
             # and the new state with its energies
+            if pot.contact is not None and pot.contact.self_friction is not None:
+                # pair friction is lagged over the candidate pairs: complete them at x_n
+                pot = pot.replace(contact=pot.contact.refreshed(state.x))
             step_pot, x_start = _prepare_step(pot, state, integ)
             res = solve(step_pot, bc_at(t_next), x0=x_start, solver=solver, throw=False)
             new, en = _finish_step(pot, state, res.x, res.status, integ)

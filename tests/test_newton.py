@@ -525,9 +525,9 @@ def test_jitted_and_host_newton_drivers_take_the_same_iterates(rect):
     while int(c_jit["status"]) == N.RUNNING:
         assert int(c_host["status"]) == N.RUNNING
         c_jit = body(s, pot, bc, c_jit, length)
-        Ke, rhs, tol, bn = N._host_system(s, pot, bc, c_host)
-        lin = N._host_linear(s, pot, bc, c_host["x"], Ke, rhs, tol)
-        c_host = N._host_update(s, pot, bc, c_host, length, Ke, bn, lin)
+        Ke, rhs, tol, bn, ph = N._host_system(s, pot, bc, c_host)
+        lin = N._host_linear(s, pot, bc, c_host["x"], Ke, rhs, tol, ph)
+        c_host = N._host_update(s, pot, bc, c_host, length, Ke, bn, lin, ph)
         k = int(c_jit["k"])
         assert int(c_host["k"]) == k and int(c_host["status"]) == int(c_jit["status"]), k
         assert int(c_host["cuts"]) == int(c_jit["cuts"]), k
@@ -552,7 +552,10 @@ def test_jitted_and_host_newton_drivers_take_the_same_iterates(rect):
     np.testing.assert_array_equal(a.stats["step_history"], b.stats["step_history"])
     np.testing.assert_allclose(b.stats["energy"], a.stats["energy"], rtol=1e-12)
     n = int(a.stats["steps"]) + 1
-    np.testing.assert_allclose(
-        b.stats["residual_history"][:n], a.stats["residual_history"][:n], rtol=1e-7
+    # the last residual is round-off (≈ 3e-12 of the largest): compared against that scale
+    ra, rb = (
+        np.asarray(a.stats["residual_history"][:n]),
+        np.asarray(b.stats["residual_history"][:n]),
     )
+    np.testing.assert_allclose(rb, ra, rtol=1e-7, atol=1e-10 * float(ra.max()))
     assert n == len(energies)

@@ -235,6 +235,37 @@ def test_broad_phase_2d():
     assert set(map(tuple, pt)) == ref
 
 
+def test_capacity_policy_grows_rarely():
+    """Buffer capacities: kept while they fit, never shrunk, one power-of-2 level for both
+    kinds with 2× headroom, at most the number of all possible pairs."""
+    from jaxelastic.contact.broadphase import MIN_CAPACITY, capacity_for
+
+    assert capacity_for((10, 10)) == MIN_CAPACITY == (1024, 2048)
+    assert capacity_for((600, 2000), (1024, 2048)) == (1024, 2048)  # fits: kept
+    assert capacity_for((1500, 100), (1024, 2048)) == (4096, 8192)  # 2 × 1500 → level 2
+    assert capacity_for((1500, 100), (1024, 2048), bounds=(2000, 500)) == (2000, 500)
+    assert capacity_for((10, 10), (4096, 8192)) == (4096, 8192)  # never shrinks
+    assert capacity_for((5000, 10), (4096, 8192)) == (16384, 32768)
+
+
+def test_strip_buffer_sized_once():
+    """The ``fold`` strip (one element thick): the default motion bound stays below half
+    the thickness, so opposite faces are not candidates at rest, and the buffer has room
+    for a long step's candidates (the whole fold then runs on this shape)."""
+    mesh = je.box(24, 2, 1, size=(1.0, 0.1, 0.02))
+    sc = jc.make_self_contact(mesh, 1e-3)
+    assert float(sc.base_margin) == pytest.approx(0.25 * 0.02)
+    surf = surface_of(mesh)
+    X = np.asarray(mesh.points)
+    at_rest = tuple(map(len, candidate_pairs(X, surf, 1e-3 + 2 * float(sc.base_margin))))
+    assert sc.counts == at_rest == (296, 828)
+    long_step = tuple(map(len, candidate_pairs(X, surf, 1e-3 + 8 * float(sc.base_margin))))
+    assert all(n <= c / 2 for n, c in zip(long_step, sc.capacity, strict=True))
+    assert sc.capacity == (4096, 8192)
+    again = sc.refreshed(mesh.points + 1e-3, 1e-3)  # fits: the same shape
+    assert again.capacity == sc.capacity
+
+
 # ------------------------------------------------------------------------------- CCD
 
 
@@ -411,7 +442,7 @@ def test_intersection_checker_sees_overlap():
     assert _intersecting_pairs(mesh, Y) > 0
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # 50–67 s on a shared 2-core machine (most of it compiling the contact)
 def test_fold_scene_stays_intersection_free():
     """The shipped ``fold`` scene: the strip's ends are brought together until its legs
     meet. At every converged increment no boundary-triangle pair intersects (independent
@@ -437,3 +468,64 @@ def test_fold_scene_stays_intersection_free():
     free = built.potential.replace(contact=None, mass=None)
     y = je.solve_incremental(free, built.bc_fn(1.0), steps=10, path=built.bc_fn).x
     assert _intersecting_pairs(mesh, np.asarray(y)) > 0
+
+
+TWIST_TURNS, TWIST_SHORTENING, TWIST_STEPS = 2.0, 0.86, 10
+
+
+def _twisted_bar(n: int = 16):
+    """A neo-Hookean bar (1 m × 6 cm × 6 cm, E = 1e5 Pa, ν = 0.3, 1000 kg/m³ under
+    gravity; ``6·4n`` tets) clamped at x = 0, and the load path of its other end: turned
+    ``TWIST_TURNS`` full turns about the bar's axis while moved back towards the clamp by
+    ``TWIST_SHORTENING`` of the length (``s ↦`` Dirichlet data)."""
+    L, a = 1.0, 0.06
+    mesh = je.box(n, 2, 2, size=(L, a, a))
+    X = np.asarray(mesh.points)
+    end = X[:, 0] > L - 1e-9
+    mask = np.zeros_like(X, bool)
+    mask[(X[:, 0] < 1e-9) | end] = True
+    axis = np.array([L, a / 2, a / 2])
+
+    def path(s):
+        th = s * TWIST_TURNS * 2 * np.pi
+        R = np.array([[1, 0, 0], [0, np.cos(th), -np.sin(th)], [0, np.sin(th), np.cos(th)]])
+        V = X.copy()
+        V[end] = (X[end] - axis) @ R.T + axis - [s * TWIST_SHORTENING * L, 0.0, 0.0]
+        return je.Dirichlet(mask=jnp.asarray(mask), values=jnp.asarray(V))
+
+    g = je.loads.gravity_load(mesh, 1000.0, [0.0, 0.0, -9.81])
+    mu, lam = je.lame(1e5, 0.3)
+    pot = je.Potential(mesh, je.Lame(mu, lam), psi=je.materials.neo_hookean, f_ext=jnp.asarray(g))
+    return mesh, pot, path
+
+
+@pytest.mark.slow  # 197 s on a loaded 2-core machine (~30 Newton steps per increment in contact)
+def test_twisted_bar_stays_intersection_free():
+    """The bar's end turns two full turns while it comes back to 0.14 m from the clamp:
+    the bar buckles into a loop whose legs, next to the clamp, twist around each other.
+    Without self-contact the legs pass through each other (independent
+    triangle–triangle test); with it no boundary-triangle pair intersects at any
+    converged increment and the smallest pair distance stays > 0 (and below d̂: the legs
+    do touch)."""
+    mesh, pot, path = _twisted_bar()
+    free = je.solve_incremental(pot, path(1.0), steps=TWIST_STEPS, path=path)
+    crossing = _intersecting_pairs(mesh, np.asarray(free.x))
+    print(f"twisted bar without self-contact: {crossing} intersecting triangle pairs")
+    assert crossing > 0
+    pot = jc.with_contact(pot, self_contact=True)
+    c0 = pot.contact
+    seen = []
+
+    def check(s, sol):
+        x = np.asarray(sol.x)
+        d = float(c0.refreshed(x, force=True).min_distance(sol.x))
+        seen.append((s, _intersecting_pairs(mesh, x), d))
+
+    newton = je.Newton(max_steps=200)  # the last increments press the legs together hard
+    res = je.solve_incremental(
+        pot, path(1.0), steps=TWIST_STEPS, path=path, solver=newton, callback=check
+    )
+    print("twisted bar (s, intersecting pairs, min distance):", seen)
+    assert bool(res.ok) and seen[-1][0] == 1.0
+    assert all(n == 0 and d > 0 for _, n, d in seen)
+    assert min(d for *_, d in seen) < float(c0.dhat)

@@ -9,8 +9,9 @@ Contact", ACM TOG 39(4)), as one more term of the potential Newton minimises.
 * :mod:`~jaxelastic.contact.setup`: :func:`make_contact` (automatic d̂, κ), :func:`adapt`;
 * self-contact: :mod:`~jaxelastic.contact.distance` (point–triangle, edge–edge with the
   parallel-edge mollifier, 2D point–edge), :mod:`~jaxelastic.contact.broadphase` (host
-  spatial hash), :mod:`~jaxelastic.contact.pairs` (:class:`SelfContact`, the pair barrier)
-  and additive CCD (:func:`~jaxelastic.contact.ccd.additive_toi`).
+  spatial hash), :mod:`~jaxelastic.contact.pairs` (:class:`SelfContact`, the pair barrier),
+  :mod:`~jaxelastic.contact.pair_friction` (lagged friction of the pairs) and additive
+  CCD (:func:`~jaxelastic.contact.ccd.additive_toi`).
 """
 
 from .barrier import barrier as barrier
@@ -29,6 +30,7 @@ from .obstacles import HalfSpace as HalfSpace
 from .obstacles import Obstacle as Obstacle
 from .obstacles import RotatedBox as RotatedBox
 from .obstacles import Sphere as Sphere
+from .pair_friction import PairFrictionLag as PairFrictionLag
 from .pairs import SelfContact as SelfContact
 from .pairs import make_self_contact as make_self_contact
 from .setup import adapt as adapt
@@ -55,6 +57,7 @@ __all__ = [
     "Obstacle",
     "RotatedBox",
     "Sphere",
+    "PairFrictionLag",
     "SelfContact",
     "make_self_contact",
     "adapt",

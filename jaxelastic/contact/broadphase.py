@@ -15,7 +15,8 @@ an exact box-overlap test then filters. Why this and not a BVH or sweep and prun
 * a device version (fixed-size hashing in JAX) would have to size every buffer for the
   worst case at compile time; the candidate count varies by orders of magnitude over a
   fold, so the host builds an exact list and hands a fixed-capacity, padded buffer to the
-  jitted energy (capacity grown by powers of 2: a re-jit only on growth).
+  jitted energy (capacity grown by powers of 2 with headroom, never shrunk, both kinds
+  on one chain of shapes: a re-jit only on growth, :func:`capacity_for`).
 
 Pairs (node indices): 3D point–triangle ``(p, t0, t1, t2)`` and edge–edge
 ``(a0, a1, b0, b1)``; 2D point–edge ``(p, e0, e1)``. Pairs that share a node are left out
@@ -29,7 +30,15 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["Surface", "surface_of", "candidate_pairs", "capacity_for", "pad_pairs"]
+__all__ = [
+    "Surface",
+    "surface_of",
+    "candidate_pairs",
+    "capacity_for",
+    "pad_pairs",
+    "HEADROOM",
+    "MIN_CAPACITY",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -180,15 +189,43 @@ def candidate_pairs(x, surf: Surface, radius: float) -> tuple[np.ndarray, np.nda
     return pt, ee
 
 
-def capacity_for(count: int, current: int = 0, minimum: int = 1024) -> int:
-    """The buffer capacity for ``count`` pairs: ``current`` if it fits, else the next
-    power of 2 ≥ ``count`` (at least ``minimum``) — a shape change (re-jit) only on growth."""
-    if count <= current:
-        return int(current)
-    cap = max(int(minimum), 1)
-    while cap < count:
-        cap *= 2
-    return cap
+HEADROOM = 2.0
+"""A buffer that grows is sized for at least this multiple of the pairs it must hold."""
+
+MIN_CAPACITY = (1024, 2048)
+"""Smallest point–primitive and edge–edge capacities (level 0; about 1:2.5 is the ratio of
+the two counts on a triangulated surface)."""
+
+
+def capacity_for(
+    counts: tuple[int, int],
+    current: tuple[int, int] = (0, 0),
+    bounds: tuple[int, int] | None = None,
+) -> tuple[int, int]:
+    """Buffer capacities ``(C₁, C₂)`` for ``counts`` ``(k₁, k₂)`` point–primitive and
+    edge–edge pairs: ``current`` if both fit, else level L's
+    ``min(MIN_CAPACITY_i·2^L, bounds_i)`` for the smallest L at or above the current one
+    with room for :data:`HEADROOM` × the counts. One level for both kinds: the capacities
+    move along one chain of shapes (each a re-jit of what takes the buffer), never shrink,
+    and stop at ``bounds`` (the numbers of all possible pairs, default unbounded)."""
+    k = tuple(int(c) for c in counts)
+    cur = tuple(int(c) for c in current)
+    if all(a <= b for a, b in zip(k, cur, strict=True)):
+        return cur[0], cur[1]
+    big = 1 << 62
+    bd = (big, big) if bounds is None else tuple(int(b) for b in bounds)
+
+    def at(level: int) -> tuple[int, ...]:
+        return tuple(min(m << level, b) for m, b in zip(MIN_CAPACITY, bd, strict=True))
+
+    level = 0
+    while any(c < min(a, b) for c, a, b in zip(at(level), cur, bd, strict=True)):
+        level += 1  # the current level: capacities never shrink
+    want = tuple(min(int(np.ceil(HEADROOM * c)), b) for c, b in zip(k, bd, strict=True))
+    while any(c < w for c, w in zip(at(level), want, strict=True)):
+        level += 1
+    c1, c2 = at(level)
+    return c1, c2
 
 
 def pad_pairs(pairs: np.ndarray, capacity: int) -> tuple[np.ndarray, np.ndarray]:

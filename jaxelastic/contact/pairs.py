@@ -28,10 +28,18 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 from ..energy import project_psd
 from .barrier import barrier
-from .broadphase import Surface, candidate_pairs, capacity_for, pad_pairs, surface_of
+from .broadphase import (
+    HEADROOM,
+    Surface,
+    candidate_pairs,
+    capacity_for,
+    pad_pairs,
+    surface_of,
+)
 from .ccd import additive_toi, motion_toi
 from .distance import (
     edge_edge_d2,
@@ -41,19 +49,60 @@ from .distance import (
     point_triangle_d2,
 )
 
-__all__ = ["SelfContact", "make_self_contact", "MARGIN_DHAT", "REFRESH_FRACTION"]
+__all__ = [
+    "SelfContact",
+    "make_self_contact",
+    "MARGIN_DHAT",
+    "MARGIN_EDGE",
+    "REFRESH_FRACTION",
+    "STEP_MARGIN_MAX",
+    "RESERVE_MAX",
+    "HESSIAN_FRACTION",
+    "hessian_slots",
+]
 
 MARGIN_DHAT = 10.0
 """Default motion bound (``margin``) of a broad phase: 10 d̂, at most
-:data:`MARGIN_EDGE` × the mean rest length of a boundary edge."""
+:data:`MARGIN_EDGE` × the shortest rest boundary edge."""
 
 MARGIN_EDGE = 0.25
-"""Cap of the default motion bound, relative to the mean boundary-edge length: a larger
-bound takes in neighbours' neighbours and the candidate count grows like its cube."""
+"""Cap of the default motion bound, relative to the shortest boundary edge: a larger
+bound takes in neighbours' neighbours (the candidate count grows like its square on a
+surface, its cube in a fold), and across a body one element thick (the ``fold`` strip:
+shortest edge = thickness) a bound above half the shortest edge takes in every pair of
+opposite faces at rest (measured: 0.25 × mean edge = 0.01 m on the strip, 0.02 m thick,
+gave 3.7× the pairs of 0.25 × shortest edge)."""
+
+RESERVE_MAX = 4
+"""A buffer that grows makes room for the candidates of the longest step's bound
+(``STEP_MARGIN_MAX·base_margin``), at most this multiple of the pairs it must hold now:
+on the ``fold`` strip (one element thick) those are 3.6× the default bound's and then the
+whole fold runs on one buffer shape; at 48k tets they are ~20× and would cost more per
+Newton iteration than they save."""
+
+STEP_MARGIN_MAX = 4.0
+"""A broad phase over a Newton step takes a motion bound of at most this multiple of the
+default one (:meth:`~jaxelastic.contact.Contact.refreshed`), if its candidates fit the
+buffer (else the default bound: the step is cut at it). A longer bound only saves Newton
+steps; it never grows the buffer (each growth is a re-jit, and the bound's candidates
+grow like its square: at 48k tets 4× the default made the buffers 100× the pairs)."""
 
 REFRESH_FRACTION = 0.5
 """:meth:`SelfContact.needs_refresh` once a surface node has moved this fraction of the
 margin since the broad phase."""
+
+
+HESSIAN_FRACTION = 8
+"""Pair Hessians are taken over the closest ``1/HESSIAN_FRACTION`` of a buffer's slots
+(:func:`hessian_slots`): only pairs within d̂ have one, a small part of the candidates
+(which reach ``d̂ + 2·margin``, with headroom); :meth:`SelfContact.refreshed` grows the
+buffer when more than half of those slots would be within d̂."""
+
+
+def hessian_slots(capacity: int) -> int:
+    """The number ``K`` of a ``capacity``-slot buffer's closest pairs that get a Hessian:
+    ``capacity / HESSIAN_FRACTION``, at least ``min(capacity, 128)``."""
+    return min(int(capacity), max(128, int(capacity) // HESSIAN_FRACTION))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,11 +206,23 @@ class SelfContact:
         return g
 
     def pair_hessians(self, x: jax.Array, dhat, kappa, project: bool = True) -> list:
-        """Per kind ``(indices (C, q), H (C, q, dim, q, dim))``: the pair Hessians,
-        PSD-projected per pair (as IPC) if ``project``."""
+        """Per kind ``(indices (K, q), H (K, q, dim, q, dim))``: the pair Hessians,
+        PSD-projected per pair (as IPC) if ``project``, of the ``K =``
+        :func:`hessian_slots` ``(C)`` closest candidate pairs (every pair within d̂ while
+        there are at most K: :meth:`refreshed` keeps it so; beyond d̂ the Hessian is 0).
+        Only those are differentiated twice and projected (measured on the ``fold``
+        strip, 4096 + 8192 slots: 285 ms for every slot, the bulk of a Newton iteration).
+        """
         out = []
         d = x.shape[1]
         for idx, fn, data in self._terms():
+            C = idx.shape[0]
+            K = hessian_slots(C)
+            if K < C:  # the K closest: a top-k of the distances, then a gather
+                d2fn = self._ee_d2 if idx is self.ee else self._pt_d2
+                d2 = jnp.where(data[0], jax.vmap(d2fn)(x[idx]), jnp.inf)
+                sel = lax.top_k(-d2, K)[1]
+                idx, data = idx[sel], tuple(a[sel] for a in data)
             H = jax.vmap(jax.hessian(lambda xs, *a, fn=fn: fn(xs, *a, dhat, kappa)))(x[idx], *data)
             C, q = idx.shape
             H = H.reshape(C, q * d, q * d)
@@ -174,11 +235,12 @@ class SelfContact:
         """``(∂²Π_s/∂x²) v`` ``(n, dim)`` (projected pair Hessians unless not ``project``)."""
         return _apply(self.pair_hessians(x, dhat, kappa, project), v, offdiag=False)
 
-    def coupling(self, x, dhat, kappa, project: bool = True):
+    def coupling(self, x, dhat, kappa, project: bool = True, hessians=None):
         """``v ↦`` the part of ``(∂²Π_s/∂x²) v`` that couples *different* nodes (the
         pair Hessians without their node-diagonal blocks, which
-        :meth:`node_blocks` gives), with the pair Hessians computed once, here."""
-        hs = self.pair_hessians(x, dhat, kappa, project)
+        :meth:`node_blocks` gives), with the pair Hessians computed once, here (or
+        ``hessians``: :meth:`pair_hessians` at ``x``, computed before)."""
+        hs = self.pair_hessians(x, dhat, kappa, project) if hessians is None else hessians
         return lambda v: _apply(hs, v, offdiag=True)
 
     def node_blocks(self, x, dhat, kappa, project: bool = True) -> jax.Array:
@@ -219,11 +281,16 @@ class SelfContact:
             >= REFRESH_FRACTION * float(self.margin)
         )
 
-    def refreshed(self, x, dhat, margin=None) -> SelfContact:
+    def refreshed(self, x, dhat, margin=None, fallback=None) -> SelfContact:
         """(host, concrete ``x`` ``(n, dim)``) The broad phase re-run at ``x`` with motion
         bound ``margin`` [m] (default: the current one): candidate pairs within
-        ``d̂ + 2·margin``, the buffer kept if it fits, else grown to the next power of 2.
-        """
+        ``d̂ + 2·margin``, the buffer kept if it fits. Else it grows
+        (:func:`~jaxelastic.contact.broadphase.capacity_for`: one power-of-2 level for both
+        kinds, 2× headroom, at most every possible pair; room for the candidates of the
+        longest step's bound, up to :data:`RESERVE_MAX` × the current ones): every growth
+        is a new buffer shape, which re-jits whatever takes it. With ``fallback`` [m] (a
+        smaller bound), a ``margin`` whose candidates do not fit takes ``fallback`` instead
+        (which may grow)."""
         margin = float(self.margin) if margin is None else float(margin)
         xh = np.asarray(x, dtype=np.float64)
         surf = Surface(
@@ -232,11 +299,38 @@ class SelfContact:
             np.asarray(self.edges),
             np.asarray(self.nodes),
         )
-        pt, ee = candidate_pairs(xh, surf, float(dhat) + 2.0 * margin * (1 + 1e-6))
-        c1, c2 = self.capacity
-        pt, pt_valid = pad_pairs(pt, capacity_for(len(pt), c1))
-        ee_cap = capacity_for(len(ee), c2) if self.dim == 3 else 0
-        ee, ee_valid = pad_pairs(ee, ee_cap) if self.dim == 3 else (ee, np.zeros(0, bool))
+        dhat = float(dhat)
+        pt, ee = candidate_pairs(xh, surf, dhat + 2.0 * margin * (1 + 1e-6))
+        cap = self.capacity
+        if (len(pt) > cap[0] or len(ee) > cap[1]) and fallback is not None:
+            margin = float(fallback)
+            pt, ee = candidate_pairs(xh, surf, dhat + 2.0 * margin * (1 + 1e-6))
+        if len(pt) > cap[0] or len(ee) > cap[1]:
+            counts = (len(pt), len(ee))
+            reserve = STEP_MARGIN_MAX * float(self.base_margin)
+            if reserve > margin:  # room for a long step's candidates, within reason
+                more = map(len, candidate_pairs(xh, surf, dhat + 2.0 * reserve))
+                counts = tuple(
+                    max(c, min(m, RESERVE_MAX * c)) for c, m in zip(counts, more, strict=True)
+                )
+            cap = _grown(counts, cap, surf)
+        out = self._padded(xh, pt, ee, cap, margin)
+        # the pairs within d̂ now: each kind's Hessian slots keep room for twice as many
+        near = np.asarray(_near_counts(out, jnp.asarray(x, self.rest.dtype), dhat))
+        if np.any(HEADROOM * near > np.array([hessian_slots(c) for c in cap])):
+            counts = tuple(
+                max(len(a), HESSIAN_FRACTION * int(n)) for a, n in zip((pt, ee), near, strict=True)
+            )
+            new = _grown(counts, cap, surf)
+            if new != cap:
+                out = self._padded(xh, pt, ee, new, margin)
+        return out
+
+    def _padded(self, xh, pt, ee, cap, margin) -> SelfContact:
+        """(host) This contact with candidate pairs ``pt``, ``ee`` found at ``xh`` padded
+        to capacities ``cap`` and motion bound ``margin``."""
+        pt, pt_valid = pad_pairs(pt, cap[0])
+        ee, ee_valid = pad_pairs(ee, cap[1]) if self.dim == 3 else (ee, np.zeros(0, bool))
         X = np.asarray(self.rest, dtype=np.float64)
         if len(ee):
             r = X[ee]
@@ -281,6 +375,22 @@ jax.tree_util.register_dataclass(
 )
 
 
+def _grown(counts, cap, surf: Surface) -> tuple[int, int]:
+    """(host) :func:`~jaxelastic.contact.broadphase.capacity_for` ``counts`` from ``cap``,
+    bounded by the numbers of all possible pairs of ``surf``."""
+    nn, nf, ne = len(surf.nodes), len(surf.faces), len(surf.edges)
+    if surf.dim == 2:
+        return capacity_for((counts[0], 0), cap, (nn * ne, 0))
+    return capacity_for(counts, cap, (nn * nf, ne * (ne - 1) // 2))
+
+
+@jax.jit
+def _near_counts(sc: SelfContact, x, dhat):
+    """``(2,)`` numbers of point–primitive and edge–edge candidate pairs within ``dhat``."""
+    d1, d2 = sc.distances(x)
+    return jnp.stack([jnp.sum(d1 < dhat), jnp.sum(d2 < dhat)])
+
+
 def _barrier_of_d2(d2, valid, dhat, kappa):
     """``κ b(√d²; d̂)`` with zero (and zero derivatives) outside reach or in empty slots."""
     active = valid & (d2 < dhat * dhat)
@@ -303,7 +413,7 @@ def _apply(hs, v, offdiag: bool):
 def make_self_contact(mesh, dhat, margin=None, x=None) -> SelfContact:
     """The :class:`SelfContact` of ``mesh``'s boundary with its broad phase run at ``x``
     (default: the rest shape) and motion bound ``margin`` [m] (default
-    ``min(MARGIN_DHAT·d̂, MARGIN_EDGE·mean boundary-edge length)``)."""
+    ``min(MARGIN_DHAT·d̂, MARGIN_EDGE·shortest boundary edge)``)."""
     surf = surface_of(mesh)
     X = mesh.points
     dt = X.dtype
@@ -328,7 +438,7 @@ def make_self_contact(mesh, dhat, margin=None, x=None) -> SelfContact:
     if margin is None:
         Xh = np.asarray(X, dtype=np.float64)
         e = Xh[surf.edges[:, 1]] - Xh[surf.edges[:, 0]]
-        h = float(np.mean(np.sqrt(np.sum(e * e, axis=1)))) if len(e) else float(dhat)
+        h = float(np.min(np.sqrt(np.sum(e * e, axis=1)))) if len(e) else float(dhat)
         margin = min(MARGIN_DHAT * float(dhat), MARGIN_EDGE * h)
     sc = sc.replace(base_margin=jnp.asarray(float(margin), dt))
     return sc.refreshed(X if x is None else x, dhat, margin)

@@ -50,6 +50,7 @@ def make_contact(
     dhat=None,
     kappa=None,
     friction: bool | None = None,
+    self_friction=None,
     eps=None,
     t=0.0,
 ) -> Contact:
@@ -60,20 +61,24 @@ def make_contact(
         obstacles: obstacles (:mod:`~jaxelastic.contact.obstacles`); at least one unless
             ``self_contact``.
         self_contact: also barrier contact between the body's own boundary primitives
-            (:mod:`~jaxelastic.contact.pairs`; broad phase at the rest shape). Friction is
-            not applied to self-contact pairs.
-        margin: self-contact motion bound [m] (default ``MARGIN_DHAT·d̂`` = 10 d̂).
+            (:mod:`~jaxelastic.contact.pairs`; broad phase at the rest shape).
+        margin: self-contact motion bound [m] (default ``min(10 d̂, ¼ shortest boundary
+            edge)``: :func:`~jaxelastic.contact.pairs.make_self_contact`).
         nodes: ``(m,)`` contact nodes (default: every boundary node).
         dhat: barrier reach [m] (default 1e-3 × the rest bounding-box diagonal).
         kappa: barrier stiffness [N/m] (default :func:`auto_kappa`).
         friction: lagged friction on/off (default: on if an obstacle has μ > 0); the lag
             starts at the rest shape (:meth:`Contact.lag` moves it).
+        self_friction: Coulomb coefficient μ of self-contact pairs (default None: no
+            friction between them; needs ``self_contact``;
+            :mod:`~jaxelastic.contact.pair_friction`), lagged with the obstacle friction.
         eps: friction slip tolerance [m] (default 1e-5 × the bounding-box diagonal).
         t: initial obstacle time [s].
 
     Raises:
         ValueError: no obstacle and no self-contact, a contact node inside an obstacle at
-            the rest shape, or two boundary primitives touching at the rest shape.
+            the rest shape, two boundary primitives touching at the rest shape, or
+            ``self_friction`` without ``self_contact`` or negative.
     """
     obstacles = tuple(obstacles)
     if not obstacles and not self_contact:
@@ -102,9 +107,17 @@ def make_contact(
         )
     if friction is None:
         friction = any(float(jnp.asarray(ob.friction)) > 0 for ob in obstacles)
+    eps = EPS_REL * float(default_dhat(X, 1.0)) if eps is None else eps
     if friction and obstacles:
-        eps = EPS_REL * float(default_dhat(X, 1.0)) if eps is None else eps
         c = c.lag(X, eps=eps)
+    if self_friction is not None:
+        negative = isinstance(self_friction, (int, float)) and not self_friction >= 0
+        if not self_contact or negative:
+            raise ValueError(
+                f"make_contact: self_friction = {self_friction} needs self_contact=True "
+                "and a coefficient >= 0"
+            )
+        c = c.with_self_friction(X, jnp.asarray(self_friction, dt), eps)
     return c
 
 

@@ -23,6 +23,8 @@ Hessians like the obstacle blocks (every preconditioner and factorisation sees t
 the rest, which couples different nodes, is the matrix-free :meth:`Contact.coupling`
 operator that Newton adds to its Hessian operator (so CG-type solves, including the
 host ones used as preconditioners, see the whole Hessian; see docs/guide/contact.md).
+With ``self_friction`` (:mod:`~jaxelastic.contact.pair_friction`) the pairs' lagged
+friction ``Σ_k μ λ_k f₀(‖T_kᵀ Δu_k‖)`` takes the same two routes.
 """
 
 from __future__ import annotations
@@ -38,13 +40,11 @@ from ..energy import project_psd
 from .barrier import barrier, barrier_d1
 from .ccd import ccd_step, safe_norm
 from .friction import FrictionLag, friction_node_energy, tangent_basis
+from .pair_friction import PairFrictionLag, lag_pair_friction
+from .pairs import STEP_MARGIN_MAX as STEP_MARGIN_MAX
 from .pairs import SelfContact
 
 __all__ = ["Contact", "STEP_MARGIN_MAX"]
-
-STEP_MARGIN_MAX = 4.0
-"""A broad phase over a Newton step takes a motion bound of at most this multiple of the
-default one (the candidate count grows like its cube)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +60,8 @@ class Contact:
         friction: :class:`~jaxelastic.contact.friction.FrictionLag` or None (frictionless).
         self_contact: :class:`~jaxelastic.contact.pairs.SelfContact` or None (no
             self-contact; then ``obstacles`` must not be empty).
+        self_friction: :class:`~jaxelastic.contact.pair_friction.PairFrictionLag` (lagged
+            friction of the self-contact pairs, with its μ) or None (frictionless pairs).
 
     Build one with :func:`~jaxelastic.contact.make_contact` (automatic κ, d̂).
     """
@@ -71,6 +73,7 @@ class Contact:
     t: jax.Array
     friction: FrictionLag | None = None
     self_contact: SelfContact | None = None
+    self_friction: PairFrictionLag | None = None
 
     def replace(self, **kw) -> Contact:
         return dataclasses.replace(self, **kw)
@@ -137,6 +140,8 @@ class Contact:
             e = e + jnp.sum(self._per_node(self._node_energy, x))
         if self.self_contact is not None:
             e = e + self.self_contact.energy(x, self.dhat, self.kappa)
+        if self.self_friction is not None:
+            e = e + self.self_friction.energy(x)
         return e
 
     def _scatter(self, x, g):
@@ -152,17 +157,22 @@ class Contact:
             g = self._scatter(x, self._per_node(jax.grad(self._node_energy), x))
         if self.self_contact is not None:
             g = g + self._self_gradient(x)
+        if self.self_friction is not None:
+            g = g + self.self_friction.gradient(x)
         return g
 
     def forces(self, x: jax.Array, friction: bool = True) -> jax.Array:
         """Contact forces on the nodes ``−∂Π_c/∂x`` ``(n, dim)`` [N] (barrier only if not
-        ``friction``); self-contact forces included (they sum to zero)."""
+        ``friction``); self-contact forces (and their friction) included: they sum to
+        zero."""
         f = jnp.zeros_like(x)
         if self.obstacles:
             fn = jax.grad(lambda xa, d: self._node_energy(xa, d, friction))
             f = -self._scatter(x, self._per_node(fn, x))
         if self.self_contact is not None:
             f = f - self._self_gradient(x)
+        if friction and self.self_friction is not None:
+            f = f - self.self_friction.gradient(x)
         return f
 
     def node_hessians(self, x: jax.Array, project: bool = True) -> jax.Array:
@@ -179,16 +189,34 @@ class Contact:
             Hv = self._scatter(x, jnp.einsum("mij,mj->mi", H, v[self.nodes]))
         if self.self_contact is not None:
             Hv = Hv + self.self_contact.hvp(x, v, self.dhat, self.kappa, project=not exact)
+        if self.self_friction is not None:
+            Hv = Hv + self.self_friction.hvp(x, v, project=not exact)
         return Hv
 
-    def coupling(self, x: jax.Array, exact: bool = False):
-        """The self-contact Hessian's coupling of different nodes as ``v ↦ H_c v``
-        (``(n, dim) -> (n, dim)``; projected pair Hessians unless ``exact``), or None
-        without self-contact. Newton adds it to the element-Hessian operator, whose
-        :meth:`add_hessian_blocks` hold the node-diagonal rest."""
+    def pair_hessians(self, x: jax.Array, exact: bool = False) -> list | None:
+        """The self-contact pair Hessians at ``x`` ``(n, dim)``
+        (:meth:`~jaxelastic.contact.pairs.SelfContact.pair_hessians`; projected unless
+        ``exact``), or None without self-contact: computed once, they can be handed to
+        :meth:`coupling` in another compiled piece."""
         if self.self_contact is None:
             return None
-        return self.self_contact.coupling(x, self.dhat, self.kappa, project=not exact)
+        return self.self_contact.pair_hessians(x, self.dhat, self.kappa, project=not exact)
+
+    def coupling(self, x: jax.Array, exact: bool = False, pair_hessians=None):
+        """The self-contact Hessian's coupling of different nodes as ``v ↦ H_c v``
+        (``(n, dim) -> (n, dim)``; projected pair Hessians unless ``exact``, or the given
+        :meth:`pair_hessians` at ``x``), or None without self-contact. Newton adds it to
+        the element-Hessian operator, whose :meth:`add_hessian_blocks` hold the
+        node-diagonal rest."""
+        if self.self_contact is None:
+            return None
+        cpl = self.self_contact.coupling(
+            x, self.dhat, self.kappa, project=not exact, hessians=pair_hessians
+        )
+        if self.self_friction is None:
+            return cpl
+        cpl_f = self.self_friction.coupling(x, project=not exact)  # pair friction's
+        return lambda v: cpl(v) + cpl_f(v)
 
     def add_hessian_blocks(self, Ke: jax.Array, mesh: Any, x: jax.Array, project: bool = True):
         """``Ke`` ``(n_cells, k·d, k·d)`` with each contact node's block (obstacles, and
@@ -206,7 +234,10 @@ class Contact:
         if sc is not None:
             slot = mesh.incidence[sc.nodes, 0]
             cell, loc = slot // k, slot % k
-            B = sc.node_blocks(x, self.dhat, self.kappa, project)[sc.nodes].astype(Ke.dtype)
+            B = sc.node_blocks(x, self.dhat, self.kappa, project)
+            if self.self_friction is not None:  # its pairs' nodes are surface nodes
+                B = B + self.self_friction.node_blocks(x, project)
+            B = B[sc.nodes].astype(Ke.dtype)
             K4 = K4.at[cell, loc, :, loc, :].add(B)
         return K4.reshape(Ke.shape)
 
@@ -226,8 +257,9 @@ class Contact:
         at ``x`` ``(n, dim)`` if a surface node has used half its motion bound (or
         ``force``, or a ``step`` ``(n, dim)`` [m] — the next Newton step — would leave
         it): the new bound is ``max(base_margin, 1.1·max_a ‖step_a‖)``, at most
-        ``STEP_MARGIN_MAX·base_margin`` (a longer step is cut by the bound). Unchanged
-        without self-contact."""
+        ``STEP_MARGIN_MAX·base_margin`` (a longer step is cut by the bound), and
+        ``base_margin`` if that bound's candidates do not fit the buffer (a long step
+        never grows it). Unchanged without self-contact."""
         sc = self.self_contact
         if sc is None:
             return self
@@ -243,7 +275,8 @@ class Contact:
             force = force or um + margin / 1.1 > float(sc.margin)
         if not (force or sc.needs_refresh(x)):
             return self
-        return self.replace(self_contact=sc.refreshed(x, self.dhat, margin))
+        fallback = m0 if margin > m0 else None  # a longer bound only if it fits the buffer
+        return self.replace(self_contact=sc.refreshed(x, self.dhat, margin, fallback))
 
     def outran(self, x) -> bool:
         """(host) Whether a solve ending at ``x`` may have been held back by the
@@ -255,12 +288,43 @@ class Contact:
         """``(n_obs, m)`` barrier normal-force magnitudes κ|b'(d)| [N]."""
         return self.kappa * jnp.abs(barrier_d1(self.distances(x), self.dhat))
 
+    @property
+    def has_friction(self) -> bool:
+        """Whether friction is on (obstacles or self-contact pairs): then :meth:`lag` it
+        at the start of every time or load step."""
+        return self.friction is not None or self.self_friction is not None
+
     def lag(self, x: jax.Array, eps=None) -> Contact:
-        """This contact with friction lagged at ``x`` (normal forces, tangent bases,
-        positions and obstacle translations now); ``eps`` [m] the slip tolerance (default:
-        the current one, else 1e-2·d̂)."""
-        if not self.obstacles:
-            return self
+        """This contact with friction lagged at ``x`` ``(n, dim)`` [m]: the obstacle
+        friction (normal forces, tangent bases, positions and obstacle translations now;
+        turned on here if no friction is on yet, as :func:`make_contact` does) and, if on,
+        the self-contact pair friction (:meth:`with_self_friction`, same μ). ``eps`` [m]
+        the slip tolerance (default: the current one, else 1e-2·d̂). Jit-able."""
+        out = self
+        sf = self.self_friction
+        if self.obstacles and (self.friction is not None or sf is None):
+            out = out.replace(friction=self._lag_obstacles(x, eps))
+        if sf is not None:
+            out = out.with_self_friction(x, sf.mu, sf.eps if eps is None else eps)
+        return out
+
+    def with_self_friction(self, x: jax.Array, mu, eps) -> Contact:
+        """This contact with friction μ ``()`` on its self-contact pairs, lagged at ``x``
+        ``(n, dim)`` [m] over the current candidate buffer
+        (:func:`~jaxelastic.contact.pair_friction.lag_pair_friction`; the buffer must be
+        complete at ``x``), slip tolerance ``eps`` [m]. Jit-able.
+
+        Raises:
+            ValueError: without self-contact.
+        """
+        if self.self_contact is None:
+            raise ValueError(
+                "self-contact friction needs self-contact: make_contact(..., self_contact=True)"
+            )
+        lag = lag_pair_friction(self.self_contact, x, self.dhat, self.kappa, mu, eps)
+        return self.replace(self_friction=lag)
+
+    def _lag_obstacles(self, x: jax.Array, eps) -> FrictionLag:
         xn = x[self.nodes]
         bases = []
         for ob in self.obstacles:
@@ -269,14 +333,13 @@ class Contact:
             bases.append(jax.vmap(tangent_basis)(n))
         if eps is None:
             eps = self.friction.eps if self.friction is not None else 1e-2 * self.dhat
-        lag = FrictionLag(
+        return FrictionLag(
             x_lag=xn,
             offset_lag=self.offsets(),
             normal_force=self.normal_forces(x),
             basis=jnp.stack(bases),
             eps=jnp.asarray(eps, x.dtype),
         )
-        return self.replace(friction=lag)
 
     def at_time(self, t) -> Contact:
         """This contact with the obstacles at time ``t`` [s]."""
@@ -296,6 +359,15 @@ class Contact:
 
 jax.tree_util.register_dataclass(
     Contact,
-    data_fields=["nodes", "obstacles", "dhat", "kappa", "t", "friction", "self_contact"],
+    data_fields=[
+        "nodes",
+        "obstacles",
+        "dhat",
+        "kappa",
+        "t",
+        "friction",
+        "self_contact",
+        "self_friction",
+    ],
     meta_fields=[],
 )

@@ -46,8 +46,9 @@ def build_contact(scene: Scene, pot: Potential) -> Potential:
     self-contact).
 
     Raises:
-        SceneError: ``[contact]`` without obstacles nor ``self = true``, a body node inside
-            an obstacle at the rest shape, or the boundary touching itself at rest.
+        SceneError: ``[contact]`` without obstacles nor ``self = true``, ``self_friction``
+            without ``self = true``, a body node inside an obstacle at the rest shape, or
+            the boundary touching itself at rest.
     """
     spec = scene.spec
     self_contact = spec.contact is not None and spec.contact.self_contact
@@ -56,6 +57,8 @@ def build_contact(scene: Scene, pot: Potential) -> Potential:
             raise scene.error("[contact] needs at least one [[obstacle]] or self = true")
         return pot
     cs = spec.contact or ContactSpec()
+    if cs.self_friction > 0 and not self_contact:
+        raise scene.error("[contact].self_friction needs self = true")
     dt = pot.mesh.points.dtype
     obs = [
         _obstacle(scene, i, o, cs.friction if o.friction is None else o.friction, dt)
@@ -63,7 +66,13 @@ def build_contact(scene: Scene, pot: Potential) -> Potential:
     ]
     try:
         c = make_contact(
-            pot, obs, dhat=cs.dhat, kappa=cs.kappa, self_contact=self_contact, margin=cs.margin
+            pot,
+            obs,
+            dhat=cs.dhat,
+            kappa=cs.kappa,
+            self_contact=self_contact,
+            margin=cs.margin,
+            self_friction=cs.self_friction if cs.self_friction > 0 else None,
         )
     except ValueError as e:
         raise scene.error(f"{'[[obstacle]]' if obs else '[contact]'}: {e}") from None

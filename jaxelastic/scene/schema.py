@@ -728,7 +728,7 @@ class ContactSpec(Table):
         default=False,
         alias="self",
         description="barrier contact of the body's boundary with itself (point-triangle, "
-        "edge-edge; 2D point-edge); no friction on self-contact pairs",
+        "edge-edge; 2D point-edge); friction between them: self_friction",
     )
     margin: Positive | None = Field(
         default=None,
@@ -742,6 +742,11 @@ class ContactSpec(Table):
         default=None, description="barrier stiffness [N/m] (default: from the elastic stiffness)"
     )
     friction: NonNegative = Field(default=0.0, description="default Coulomb coefficient mu")
+    self_friction: NonNegative = Field(
+        default=0.0,
+        description="Coulomb coefficient mu between self-contact pairs (needs self = true; "
+        "IPC's lagged friction, lagged at every load or time step)",
+    )
 
 
 # ----------------------------------------------------------------------------------------

@@ -104,7 +104,9 @@ def solve_incremental(
         x_start = x
         if pot.contact is not None:  # obstacles at time s_try, friction lagged at x (time s)
             c = pot.contact.at_time(s)
-            c = (c.lag(x) if c.friction is not None else c).at_time(s_try)
+            if c.self_friction is not None:  # lagged over the candidate pairs: complete
+                c = c.refreshed(x)  # them at x (host)
+            c = (c.lag(x) if c.has_friction else c).at_time(s_try)
             p, x_start = p.replace(contact=c), c.make_feasible(x)
         last = solve(p, path(s_try), x0=x_start, solver=solver, throw=False)
         history.append(_record(s_try, last))
