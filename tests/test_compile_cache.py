@@ -90,9 +90,12 @@ def test_dynamic_scene_compiles_one_newton_solve(tmp_path):
     scene = load_scene("default", overrides=overrides)
     jax.clear_caches()  # count this run's compilations only
     monitoring.register_event_duration_secs_listener(listen)
+    # (without the test session's persistent cache: a hit there is no compilation)
+    jax.config.update("jax_enable_compilation_cache", False)
     try:
         summary = run_scene(scene, tmp_path / "out", progress=False)
     finally:
+        jax.config.update("jax_enable_compilation_cache", True)
         monitoring.unregister_event_duration_listener(listen)
     assert summary["status"] == "ok" and "comparison" in summary
     assert summary["dynamic"]["steps"] == 5
