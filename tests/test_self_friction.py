@@ -257,21 +257,25 @@ def _press_and_shear(dim, mu, press=0.03, shear=0.02, gap=0.01, steps=4):
                 increments=increments, x=x)  # fmt: skip
 
 
-@pytest.mark.slow  # 30–55 s on a loaded 2-core machine (one compile of the 2D contact solve)
-def test_blocks_2d_stick_or_slide():
-    """2D, two blocks of one mesh pressed together (top moved down 0.03 m, 0.02 m past
-    the gap) then sheared by 0.02 m in 2 load steps: needs |F_t|/|F_n| ≈ 0.27 to stick.
-    μ = 1: sticks, slip ≤ ε per load step; μ = 0.1: slides, |F_t| = μ|F_n| within 2 %."""
+@pytest.mark.slow  # 2D 30–55 s, 3D 57–150 s on a loaded 2-core machine (compiles)
+@pytest.mark.parametrize("dim, rel", [(2, 0.02), (3, 0.03)])
+def test_blocks_stick_or_slide(dim, rel):
+    """Two blocks of one mesh pressed together (top moved down 0.03 m, 0.02 m past the
+    gap) then sheared by 0.02 m in 2 load steps: needs |F_t|/|F_n| ≈ 0.27 to stick (2D:
+    point–edge pairs; 3D: point–triangle and edge–edge). μ = 1: sticks, slip ≤ ε per load
+    step; μ = 0.1: slides, |F_t| = μ|F_n| within ``rel`` (measured −0.1 % in 2D, +1.0 %
+    in 3D)."""
     out = {}
     for mu in (0.1, 1.0):
-        r = _press_and_shear(2, mu)
+        r = _press_and_shear(dim, mu)
         eps = float(r["contact"].self_friction.eps)
         ratio = r["Ft"] / r["Fn"]
         out[mu] = ratio
         slip = np.max(np.abs(r["slip"]))
-        print(f"2D μ = {mu}: F_t/F_n = {ratio:.4f}, max slip in the shear phase {slip:.2e} m "
-              f"(ε = {eps:.2e} m)")  # fmt: skip
-        assert r["increments"] == [0.25, 0.5, 0.75, 1.0]
+        print(f"{dim}D μ = {mu}: F_t/F_n = {ratio:.4f}, max slip in the shear phase "
+              f"{slip:.2e} m (ε = {eps:.2e} m)")  # fmt: skip
+        if dim == 2:
+            assert r["increments"] == [0.25, 0.5, 0.75, 1.0]
         x = jnp.asarray(r["x"])
         assert float(r["contact"].refreshed(x, force=True).min_distance(x)) > 0
         if mu == 1.0:
@@ -279,32 +283,7 @@ def test_blocks_2d_stick_or_slide():
             assert ratio < 0.5
         else:
             assert np.min(r["slip"]) > 100 * eps  # every bottom node slides forward
-            assert ratio == pytest.approx(mu, rel=0.02)
-    assert out[1.0] > 2 * out[0.1]
-
-
-@pytest.mark.slow  # 57–150 s on a loaded 2-core machine (compiling the 3D pair terms)
-def test_blocks_3d_stick_or_slide():
-    """3D, as the 2D test (point–triangle and edge–edge pairs): needs |F_t|/|F_n| ≈ 0.27
-    to stick. μ = 1: sticks, slip ≤ ε per load step; μ = 0.1: slides, |F_t| = μ|F_n|
-    within 3 % (measured 1.0 %)."""
-    out = {}
-    for mu in (0.1, 1.0):
-        r = _press_and_shear(3, mu)
-        eps = float(r["contact"].self_friction.eps)
-        ratio = r["Ft"] / r["Fn"]
-        out[mu] = ratio
-        slip = np.max(np.abs(r["slip"]))
-        print(f"3D μ = {mu}: F_t/F_n = {ratio:.4f}, max slip in the shear phase {slip:.2e} m "
-              f"(ε = {eps:.2e} m)")  # fmt: skip
-        x = jnp.asarray(r["x"])
-        assert float(r["contact"].refreshed(x, force=True).min_distance(x)) > 0
-        if mu == 1.0:
-            assert slip <= 2 * eps, (slip, eps)  # 2 shear steps
-            assert ratio < 0.5
-        else:
-            assert np.min(r["slip"]) > 100 * eps
-            assert ratio == pytest.approx(mu, rel=0.03)
+            assert ratio == pytest.approx(mu, rel=rel)
     assert out[1.0] > 2 * out[0.1]
 
 
