@@ -123,6 +123,9 @@ def worker(n: int, solver: str, element: str = "p1") -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import jaxelastic as je
+    from jaxelastic.solvers.heap import map_large_blocks
+
+    map_large_blocks()  # as the jaxelastic command does (docs/guide/linear-solvers.md)
 
     mesh, pot, bc = _twist_problem(n, element)
     linear = je.solvers.bind_linear(solver, mesh, bc)
