@@ -22,18 +22,24 @@ import functools
 
 
 @functools.cache
-def _malloc_trim():
-    """glibc's ``malloc_trim`` or ``None`` where the C library has none."""
-    name = ctypes.util.find_library("c")
-    if name is None:
+def _libc(name: str, argtypes: tuple, restype):
+    """The C library's function ``name`` with its signature, or ``None`` where the C
+    library (or the function: glibc only) is missing."""
+    lib = ctypes.util.find_library("c")
+    if lib is None:
         return None
     try:
-        fn = ctypes.CDLL(name).malloc_trim
+        fn = getattr(ctypes.CDLL(lib), name)
     except (OSError, AttributeError):
         return None
-    fn.argtypes = [ctypes.c_size_t]
-    fn.restype = ctypes.c_int
+    fn.argtypes = list(argtypes)
+    fn.restype = restype
     return fn
+
+
+def _malloc_trim():
+    """glibc's ``malloc_trim(size_t pad) -> int`` or ``None``."""
+    return _libc("malloc_trim", (ctypes.c_size_t,), ctypes.c_int)
 
 
 def release_free_memory() -> bool:
@@ -48,18 +54,9 @@ def release_free_memory() -> bool:
 M_MMAP_THRESHOLD = -3  # glibc mallopt parameter (malloc.h)
 
 
-@functools.cache
 def _mallopt():
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return None
-    try:
-        fn = ctypes.CDLL(name).mallopt
-    except (OSError, AttributeError):
-        return None
-    fn.argtypes = [ctypes.c_int, ctypes.c_int]
-    fn.restype = ctypes.c_int
-    return fn
+    """glibc's ``mallopt(int param, int value) -> int`` or ``None``."""
+    return _libc("mallopt", (ctypes.c_int, ctypes.c_int), ctypes.c_int)
 
 
 def map_large_blocks(threshold: int = 8 << 20) -> bool:
