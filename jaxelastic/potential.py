@@ -325,13 +325,16 @@ def _local_blocks(hl, loc: Mesh, pts, Ke):
 
 
 def elastic_element_hessians(
-    pot: Potential, x: jax.Array, project: bool, exact_contact: bool = False
+    pot: Potential, x: jax.Array, project: bool, exact_contact: bool = False, pair_hessians=None
 ) -> jax.Array:
     """Element Hessians of the elastic energy at x, ``(n_cells, k·dim, k·dim)``; with a
     contact term, its per-node blocks are added to one element per contact node
     (:meth:`~jaxelastic.contact.Contact.add_hessian_blocks`; PSD-projected unless
-    ``exact_contact``)."""
+    ``exact_contact``; ``pair_hessians``: the self-contact pair Hessians at x with that
+    projection, :meth:`~jaxelastic.contact.Contact.pair_hessians`, if computed before)."""
     Ke = element_hessians(pot.psi, x, pot.mesh, pot.params, project=project)
     if pot.contact is not None:
-        Ke = pot.contact.add_hessian_blocks(Ke, pot.mesh, x, project=not exact_contact)
+        Ke = pot.contact.add_hessian_blocks(
+            Ke, pot.mesh, x, project=not exact_contact, pair_hessians=pair_hessians
+        )
     return Ke

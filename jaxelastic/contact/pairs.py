@@ -243,11 +243,13 @@ class SelfContact:
         hs = self.pair_hessians(x, dhat, kappa, project) if hessians is None else hessians
         return lambda v: _apply(hs, v, offdiag=True)
 
-    def node_blocks(self, x, dhat, kappa, project: bool = True) -> jax.Array:
-        """``(n, dim, dim)`` node-diagonal blocks of the pair Hessians, summed per node."""
+    def node_blocks(self, x, dhat, kappa, project: bool = True, hessians=None) -> jax.Array:
+        """``(n, dim, dim)`` node-diagonal blocks of the pair Hessians, summed per node
+        (``hessians``: :meth:`pair_hessians` at ``x``, if computed before)."""
         d = x.shape[1]
         B = jnp.zeros((x.shape[0], d, d), x.dtype)
-        for idx, H in self.pair_hessians(x, dhat, kappa, project):
+        hs = self.pair_hessians(x, dhat, kappa, project) if hessians is None else hessians
+        for idx, H in hs:
             q = idx.shape[1]
             diag = H[:, jnp.arange(q), :, jnp.arange(q), :]  # (q, C, d, d)
             B = B.at[idx.T].add(diag)

@@ -218,10 +218,13 @@ class Contact:
         cpl_f = self.self_friction.coupling(x, project=not exact)  # pair friction's
         return lambda v: cpl(v) + cpl_f(v)
 
-    def add_hessian_blocks(self, Ke: jax.Array, mesh: Any, x: jax.Array, project: bool = True):
+    def add_hessian_blocks(
+        self, Ke: jax.Array, mesh: Any, x: jax.Array, project: bool = True, pair_hessians=None
+    ):
         """``Ke`` ``(n_cells, k·d, k·d)`` with each contact node's block (obstacles, and
         the node-diagonal blocks of the self-contact pair Hessians) added to the diagonal
-        block of the first element containing it (``mesh.incidence``)."""
+        block of the first element containing it (``mesh.incidence``); ``pair_hessians``:
+        :meth:`pair_hessians` at ``x`` with the same projection, if computed before."""
         c, k = mesh.cells.shape
         d = x.shape[1]
         K4 = Ke.reshape(c, k, d, k, d)
@@ -234,7 +237,7 @@ class Contact:
         if sc is not None:
             slot = mesh.incidence[sc.nodes, 0]
             cell, loc = slot // k, slot % k
-            B = sc.node_blocks(x, self.dhat, self.kappa, project)
+            B = sc.node_blocks(x, self.dhat, self.kappa, project, hessians=pair_hessians)
             if self.self_friction is not None:  # its pairs' nodes are surface nodes
                 B = B + self.self_friction.node_blocks(x, project)
             B = B[sc.nodes].astype(Ke.dtype)

@@ -164,9 +164,13 @@ def _system(s: Newton, pot: Potential, x, free, Ke=None, pair_h=None) -> NewtonS
     ``Ke``: those already computed at x; ``pair_h``: the self-contact pair Hessians at x,
     :meth:`~jaxelastic.contact.Contact.pair_hessians`, if already computed)."""
     fm = free.astype(x.dtype)
+    if pair_h is None and pot.contact is not None:  # once, for Ke's blocks and the coupling
+        pair_h = pot.contact.pair_hessians(x)
     need_Ke = s.hessian != "hvp" or s.linear.needs_element_hessians
     if Ke is None and need_Ke:
-        Ke = pot_mod.elastic_element_hessians(pot, x, project=s.hessian == "projected")
+        Ke = pot_mod.elastic_element_hessians(
+            pot, x, project=s.hessian == "projected", pair_hessians=pair_h
+        )
 
     def masked(H):
         def A(v):
