@@ -599,6 +599,15 @@ def host_minimize(s: Newton, pot: Potential, bc: Dirichlet, x0) -> Solution:
         # drop this step's element Hessians (and pair Hessians, linear result) before the
         # next _host_system makes new ones: otherwise two (n_cells, m, m) arrays are live
         # at its peak (168 MB each at 146k tets)
+        big = Ke is not None and Ke.nbytes >= TRIM_BYTES
         del Ke, lin, ph
-        release_free_memory()  # the freed host heap back to the OS (solvers/heap.py)
+        if big:
+            release_free_memory()  # the freed host heap back to the OS (solvers/heap.py)
     return _host_solution(c)
+
+
+TRIM_BYTES = 32 << 20
+""":func:`host_minimize` returns the freed heap to the OS after a Newton step whose element
+Hessians took at least this many bytes (glibc keeps freed blocks below 32 MB in its
+arenas). Smaller problems skip it: on the default scene (1,080 tets, 365 Newton steps)
+trimming every step cost 0.5 s of a 3.2 s run."""
