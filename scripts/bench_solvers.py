@@ -207,7 +207,11 @@ def breakdown_worker(n: int, solver: str, element: str = "p1") -> dict:
 
     orig = {k: getattr(N, k) for k in ("_host_system", "_host_linear", "_host_update")}
     if host is not None:  # before compiling: the callbacks capture the bound methods
-        for meth, name in (("factor_upper", "host_factor"), ("apply", "host_apply")):
+        for meth, name in (
+            ("factor_upper", "host_factor"),
+            ("apply", "host_apply"),
+            ("factor_cg_upper", "host_factor_cg"),
+        ):
             setattr(host, meth, timed(name, getattr(host, meth), sync=False))
     je.solve(pot, bc, solver=newton, throw=False)  # cold: compile everything
     cur.clear()
@@ -344,6 +348,7 @@ _BREAKDOWN_KEYS = (
     ("element_hessians_rhs", "Ke+rhs"),
     ("host_factor", "factor/setup"),
     ("host_apply", "host apply"),
+    ("host_factor_cg", "host set+CG"),
     ("linear_piece", "lin piece"),
     ("line_search_update", "line srch"),
 )

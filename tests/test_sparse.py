@@ -21,6 +21,7 @@ import jaxelastic
 from jaxelastic.materials import Lame, neo_hookean
 from jaxelastic.solvers.backends import (
     BACKEND_KINDS,
+    CHEBYSHEV_INTERVAL,
     AMGSolver,
     DirectSolver,
     available_direct_backends,
@@ -439,10 +440,10 @@ def test_amg_reuse_and_refresh():
 
 
 def test_amg_v_cycle_is_pyamgs():
-    """The V-cycle traversed in AMGSolver is PyAMG's one-cycle solve, bit for bit, for
-    one and for several right-hand sides."""
+    """With PyAMG's smoother the V-cycle traversed in AMGSolver is PyAMG's one-cycle
+    solve, bit for bit, for one and for several right-hand sides."""
     mesh, fixed, Ke, md, rhs = _problem("twist")
-    host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
+    host = _host(mesh, fixed, "amg", smoother="gauss_seidel", sa_options=dict(max_coarse=10))
     assert host.factor(Ke, md, TOKEN) == SUCCESS
     ml = host.backend.ml
     assert ml is not None and len(ml.levels) >= 3  # the recursion is exercised
@@ -453,6 +454,101 @@ def test_amg_v_cycle_is_pyamgs():
     B = np.stack([b, 2.0 * b + 1.0], axis=1)
     z = host.backend.precondition(B)
     assert np.array_equal(z[:, 1], reference(np.ascontiguousarray(B[:, 1])))
+
+
+def test_amg_chebyshev_smoother():
+    """The Chebyshev smoother's Lanczos estimate of λ_max(D⁻¹A) lies within 5 % below the
+    dense eigenvalue on every smoothed level, the polynomial damps the error on the
+    interval it was built for (|1 − t q(t)| < 1), and the V-cycle is a symmetric positive
+    definite preconditioner; a second update warm-starts the estimate."""
+    from jaxelastic.solvers.backends import CHEBYSHEV_DEGREE, _chebyshev_coefficients
+
+    mesh, fixed, Ke, md, rhs = _problem("twist")
+    host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
+    s = host.backend
+    assert s.smoother == "chebyshev"
+    assert host.factor(Ke, md, TOKEN) == SUCCESS
+    assert s.ml is not None and len(s.ml.levels) >= 3
+    for level, (dinv, coeffs) in zip(s.ml.levels[:-1], s._cheb, strict=True):
+        A = level.A.toarray()
+        lam_true = np.max(np.linalg.eigvals(dinv[:, None] * A).real)
+        t = np.linspace(1e-6, 1.0, 200)
+        hi = CHEBYSHEV_INTERVAL[1]
+        # the interval's top is 1.1 λ_est: recover λ_est from the coefficients' interval
+        lo_hi = [lam for lam in np.linspace(0.5, 1.5, 2001) * lam_true]
+        err = [
+            np.max(np.abs(c - _chebyshev_coefficients(lam / 30, hi * lam, CHEBYSHEV_DEGREE)))
+            for lam, c in ((lam, coeffs) for lam in lo_hi)
+        ]
+        lam_est = lo_hi[int(np.argmin(err))]
+        assert 0.95 * lam_true <= lam_est <= 1.0001 * lam_true, (lam_est, lam_true)
+        damp = 1.0 - t * hi * lam_est * np.polyval(coeffs, t * hi * lam_est)
+        assert np.all(np.abs(damp[t * hi >= 1 / 30]) < 1.0)
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        r, q = rng.standard_normal((2, mesh.n_dofs))
+        r[fixed] = q[fixed] = 0.0
+        Mr, Mq = s.precondition(r), s.precondition(q)
+        assert r @ Mr > 0
+        assert abs(q @ Mr - r @ Mq) <= 1e-10 * np.linalg.norm(q) * np.linalg.norm(Mr)
+    ritz = [v.copy() for v in s._ritz]
+    assert host.factor(1.1 * Ke, md, TOKEN) == SUCCESS and not s.rebuilt
+    assert all(not np.array_equal(a, b) for a, b in zip(ritz, s._ritz, strict=True))
+    with pytest.raises(ValueError, match="smoother"):
+        AMGSolver(mesh.points, fixed, smoother="sor")
+
+
+def test_host_cg_matches_device_cg():
+    """The host PCG of the AMG back end (one callback per Newton step) takes the device
+    CG's iterations on the same matrix and preconditioner: same iterate to round-off, same
+    iteration count; non-positive curvature and the iteration cap give the device's
+    statuses."""
+    from jaxelastic.solvers.backends import host_cg
+    from jaxelastic.solvers.linear import cg
+    from jaxelastic.solvers.results import Status
+
+    mesh, fixed, Ke, md, rhs = _problem("twist")
+    host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
+    assert host.factor(Ke, md, TOKEN) == SUCCESS
+    K = host.assemble(Ke, md)
+    b = rhs.reshape(-1).copy()
+    b[fixed] = 0.0
+    tol = 1e-9 * np.linalg.norm(b)
+    M = host.backend.precondition
+    x_h, its_h, st_h = host_cg(lambda v: K @ v, b, M, tol, 200)
+    Kd = jnp.asarray(K.toarray())
+    dev = cg(
+        lambda v: Kd @ v,
+        jnp.asarray(b),
+        lambda r: jax.pure_callback(M, jax.ShapeDtypeStruct(r.shape, r.dtype), r),
+        tol=tol,
+        max_iter=200,
+    )
+    assert st_h == Status.SUCCESS == int(dev.status)
+    assert its_h == int(dev.stats["iterations"])
+    np.testing.assert_allclose(x_h, np.asarray(dev.x), rtol=1e-9, atol=1e-12)
+    assert np.linalg.norm(K @ x_h - b) <= 1.01 * tol
+    # the one-callback Newton path: a refresh (its smoother's estimate warm-started, so
+    # a slightly different preconditioner), then the same solve; zero on fixed dofs
+    data = host.pattern.upper_data(np.asarray(Ke))
+    x2, its2, st2 = host.factor_cg_upper(data, md, rhs, tol, np.int32(200), TOKEN)
+    assert int(st2) == Status.SUCCESS and abs(int(its2) - its_h) <= 1
+    assert not x2.reshape(-1)[fixed].any()
+    assert np.linalg.norm(K @ x2.reshape(-1) - b) <= 1.01 * tol
+    # an indefinite operator: negative curvature, the preconditioned residual at k = 0
+    x_n, its_n, st_n = host_cg(lambda v: -(K @ v), b, M, tol, 200)
+    assert (its_n, st_n) == (1, Status.NEGATIVE_CURVATURE)
+    np.testing.assert_array_equal(x_n, M(b))
+    _, its_c, st_c = host_cg(lambda v: K @ v, b, M, 1e-30, 3)
+    assert (its_c, st_c) == (3, Status.MAX_STEPS)
+    # non-finite data: NONFINITE, NaN on the free dofs, nothing factorised
+    bad = data.copy()
+    bad[0] = np.nan
+    x3, _, st3 = host.factor_cg_upper(bad, md, rhs, tol, np.int32(200), TOKEN)
+    assert int(st3) == NONFINITE and np.isnan(x3.reshape(-1)[~fixed]).all()
+    direct = _host(mesh, fixed, "direct")
+    with pytest.raises(ValueError, match="amg"):
+        direct.factor_cg_upper(data, md, rhs, tol, np.int32(200), TOKEN)
 
 
 def test_amg_rebuilds_on_slower_convergence():

@@ -29,6 +29,7 @@ from .contact import contact_report, min_gap
 from .interrupt import Interrupted
 from .load import load_scene
 from .outputs import (
+    VTU_COMPRESSION,
     displacement_report,
     dynamic_figures,
     elastic_energy,
@@ -40,6 +41,7 @@ from .outputs import (
     remove_stale,
     remove_temporaries,
     run_header,
+    state_stress_fields,
     static_figure,
     vtu_plane,
     write_static_vtu,
@@ -205,11 +207,13 @@ def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
         summary["contact"] = contact_report(built.potential, x, 1.0, min(gaps, default=None))
     summary["probes"] = probe_report(built, x)
     t0 = time.perf_counter()
+    # the stresses once for the VTU and the picture (0.07-0.2 s per evaluation at 146k tets)
+    fields = state_stress_fields(built, x) if ocfg.vtu else None
     if ocfg.vtu:
-        summary["outputs"]["pvd"] = write_static_vtu(built, out, 1.0, x)
+        summary["outputs"]["pvd"] = write_static_vtu(built, out, 1.0, x, fields=fields)
     if ocfg.png:
         interrupt.check("after the static solve")
-        summary["outputs"]["png"].append(static_figure(built, out, x))
+        summary["outputs"]["png"].append(static_figure(built, out, x, fields=fields))
     summary["timings"]["outputs"] = time.perf_counter() - t0
 
 
@@ -312,7 +316,7 @@ def _simulate(built: Built, out: str, progress: bool, summary: dict):
     if built.scene.spec.output.vtu:
         writer = TimeSeriesWriter(
             out, "dynamic", built.mesh, built.psi, built.params, plane=vtu_plane(built),
-            contact=built.potential.contact,
+            contact=built.potential.contact, compression=VTU_COMPRESSION,
         )  # fmt: skip
     mon = _Monitor(built, writer, n_steps)
     log(progress, f"{n_steps} time steps of h = {integ.h:g} s (the first includes compilation)")

@@ -35,6 +35,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .pattern import SparsityPattern, rigid_body_modes
+from .results import Status
 
 __all__ = [
     "DirectSolver",
@@ -567,6 +568,15 @@ class AMGSolver:
             ``"fine"`` 7.5–7.8 s CPU and 34 CG iterations against ``"galerkin"``'s
             8.7–9.0 s and 29 (the Galerkin products ``R A P`` are 0.2–0.35 s CPU a step).
         cycle: multigrid cycle of one :meth:`precondition` (``"V"``, ``"W"``, ``"F"``).
+        smoother: ``"chebyshev"`` (default): a degree-:data:`CHEBYSHEV_DEGREE` Chebyshev
+            polynomial in the Jacobi-scaled matrix ``D⁻¹A`` before and after the coarse
+            correction, with ``λ_max(D⁻¹A)`` from a few Lanczos steps warm-started at the
+            previous estimate's Ritz vector (Adams, Brezina, Hu & Tuminaro, *Parallel
+            multigrid smoothing: polynomial versus Gauss–Seidel*, J. Comput. Phys. 188,
+            2003); ``"gauss_seidel"``: PyAMG's symmetric block Gauss–Seidel (the
+            ``presmoother``/``postsmoother`` of ``sa_options``). Measured at twist n = 29
+            (81k dofs, one V-cycle): Chebyshev 13 ms, block Gauss–Seidel 39 ms, at
+            13 against 11 PCG iterations to 1e-6.
         sa_options: overrides for ``pyamg.smoothed_aggregation_solver``.
         block: hand PyAMG the matrix as BSR with ``(dim, dim)`` node blocks (node-wise
             aggregation and block Gauss–Seidel smoothing).
@@ -580,8 +590,9 @@ class AMGSolver:
         fixed=None,
         *,
         reuse: int = 50,
-        refresh: str = "galerkin",
+        refresh: str = "fine",
         cycle: str = "V",
+        smoother: str = "chebyshev",
         sa_options: dict | None = None,
         block: bool = True,
         pattern: SparsityPattern | None = None,
@@ -590,6 +601,8 @@ class AMGSolver:
             raise ValueError(f"reuse must be >= 1, got {reuse!r}")
         if refresh not in ("galerkin", "fine", "none"):
             raise ValueError(f"refresh must be 'galerkin', 'fine' or 'none', got {refresh!r}")
+        if smoother not in ("chebyshev", "gauss_seidel"):
+            raise ValueError(f"smoother must be 'chebyshev' or 'gauss_seidel', got {smoother!r}")
         pts = np.asarray(points, dtype=np.float64)
         self.dim = pts.shape[1]
         self.B = rigid_body_modes(pts, fixed)
@@ -606,9 +619,15 @@ class AMGSolver:
             max_coarse=300,  # node blocks; the coarsest level is factorised by SuperLU
             coarse_solver="splu",
         )
+        self.smoother = smoother
+        if smoother == "chebyshev":  # the library's own (set_chebyshev), none by PyAMG
+            self.sa_options.update(presmoother=None, postsmoother=None)
         self.sa_options.update(sa_options or {})
+        self._cheb: list[tuple[np.ndarray, np.ndarray]] = []  # (D⁻¹, coefficients) per level
+        self._ritz: list[np.ndarray] = []  # Lanczos warm starts per level
         self.ml = None
         self._M = None
+        self._A = None  # the matrix of the last update (host CG operator)
         self._updates_since_build = 0
         self.setup_time = 0.0
         self.rebuilt = False
@@ -633,6 +652,7 @@ class AMGSolver:
             raise ValueError(f"matrix has {n} rows, the modes {self.B.shape[0]}")
         self._M = None
         A = self._amg_matrix(K)
+        self._A = A
         self.rate = _convergence_factor(self._norms)
         self._norms = []
         if self._rate_ref is None:
@@ -650,6 +670,8 @@ class AMGSolver:
                 self._fine(A)
             self._updates_since_build += 1
             self.rebuilt = False
+        if self.smoother == "chebyshev":
+            self._set_chebyshev()
         self._M = self._cycle_function()
         self.setup_time = time.perf_counter() - t0
 
@@ -673,6 +695,13 @@ class AMGSolver:
         """
         ml = self.ml
         assert ml is not None
+        if self.smoother == "chebyshev":
+            if self.cycle != "V":
+                raise ValueError("the Chebyshev smoother runs V-cycles only (cycle='V')")
+            levels, coarse, cheb = ml.levels, ml.coarse_solver, self._cheb
+            if len(levels) == 1:
+                return lambda b: coarse(levels[0].A, b)
+            return lambda b: _cheb_v_cycle(levels, coarse, cheb, 0, b)
         if self.cycle != "V" or len(ml.levels) == 1:
             return ml.aspreconditioner(cycle=self.cycle).matvec
         levels, coarse = ml.levels, ml.coarse_solver
@@ -695,8 +724,29 @@ class AMGSolver:
         for lo, hi in zip(levels[:-1], levels[1:], strict=True):
             Ac = lo.R @ lo.A @ lo.P
             hi.A = Ac.tobsr(blocksize=hi.A.blocksize) if hi.A.format == "bsr" else Ac.tocsr()
-        change_smoothers(ml, self.sa_options["presmoother"], self.sa_options["postsmoother"])
+        if self.smoother != "chebyshev":  # (Chebyshev: _set_chebyshev, after this)
+            change_smoothers(ml, self.sa_options["presmoother"], self.sa_options["postsmoother"])
         ml.coarse_solver = coarse_grid_solver(self.sa_options["coarse_solver"])
+
+    def _set_chebyshev(self) -> None:
+        """``(D⁻¹, coefficients)`` of the Chebyshev smoother of every level but the
+        coarsest, for the current level matrices: ``λ_max(D⁻¹A)`` by
+        :data:`LANCZOS_STEPS` Lanczos steps (from the previous Ritz vector of the level,
+        if any), the polynomial on ``[λ/30, 1.1 λ]`` (PyAMG's interval)."""
+        ml = self.ml
+        assert ml is not None
+        warm = len(self._ritz) == len(ml.levels) - 1
+        cheb, ritz = [], []
+        for i, level in enumerate(ml.levels[:-1]):
+            A = level.A
+            d = np.asarray(A.diagonal(), dtype=np.float64)
+            dinv = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)
+            v0 = self._ritz[i] if warm else _lanczos_start(A.shape[0])
+            lam, v = _lanczos_max(A, np.sqrt(dinv), v0, LANCZOS_STEPS)
+            lo, hi = CHEBYSHEV_INTERVAL
+            cheb.append((dinv, _chebyshev_coefficients(lo * lam, hi * lam, CHEBYSHEV_DEGREE)))
+            ritz.append(v)
+        self._cheb, self._ritz = cheb, ritz
 
     def _fine(self, A):
         """The new matrix and its smoothers on the finest level; coarse operators kept."""
@@ -704,7 +754,9 @@ class AMGSolver:
 
         assert self.ml is not None
         self.ml.levels[0].A = A
-        change_smoothers(self.ml, self.sa_options["presmoother"], self.sa_options["postsmoother"])
+        if self.smoother != "chebyshev":  # (Chebyshev: _set_chebyshev, after this)
+            opts = self.sa_options
+            change_smoothers(self.ml, opts["presmoother"], opts["postsmoother"])
 
     @property
     def ready(self) -> bool:
@@ -731,6 +783,24 @@ class AMGSolver:
             self._norms.append(float(np.sqrt(np.einsum("i,i->", r, r))))  # (no BLAS call)
             return np.asarray(self._M(r), dtype=np.float64).reshape(r.shape)
         return np.stack([self._M(np.ascontiguousarray(c)) for c in r.T], axis=1)
+
+    def solve(self, b, tol: float, max_iter: int) -> tuple[np.ndarray, int, int]:
+        """Preconditioned CG on the host with the fine-level matrix and one cycle per
+        iteration (:func:`host_cg`): ``(x, iterations, status)``.
+
+        The same iteration as the device :func:`~jaxelastic.solvers.linear.cg` with this
+        preconditioner, without a device round trip per iteration: the product with the
+        assembled matrix (BSR, 1.9 ms at 81k dofs) replaces the element-by-element product
+        on the device (15 ms), and no cycle is spent after the last iterate (measured at
+        twist n = 29).
+
+        Args:
+            b: ``(n,)`` right-hand side; tol: absolute residual tolerance; max_iter: cap.
+        """
+        if self._M is None or self._A is None:
+            raise RuntimeError("call update(K) before solve(b, ...)")
+        A = self._A  # the current matrix (under refresh="none" not the hierarchy's)
+        return host_cg(lambda v: A @ v, b, self.precondition, tol, max_iter)
 
     def info(self) -> dict:
         """``levels``, ``operator_complexity``, ``rebuilt``, ``setup_time`` of the hierarchy
@@ -771,6 +841,143 @@ def _convergence_factor(norms: list[float]) -> float | None:
     if len(logs) < 2:
         return None
     return float(np.exp(np.mean(logs)))
+
+
+def host_cg(A, b, M, tol: float, max_iter: int) -> tuple[np.ndarray, int, int]:
+    """Preconditioned CG in NumPy, the host twin of :func:`jaxelastic.solvers.linear.cg`.
+
+    Same stopping rules and statuses: ``‖r‖ ≤ tol`` (recurrence residual) → SUCCESS;
+    ``max_iter`` iterations → MAX_STEPS; non-positive curvature ``pᵀAp ≤ 0`` →
+    NEGATIVE_CURVATURE with the last iterate, or the preconditioned residual
+    ``M⁻¹b`` if it happens in the first iteration. Unlike the device loop it applies no
+    preconditioner after the last iterate.
+
+    Inner products go through ``einsum``, not BLAS: called from an XLA callback, a
+    multithreaded BLAS ``ddot`` competes with XLA's spinning worker threads (measured at
+    twist n = 29 on 2 cores: the host CG 2× slower with ``r @ r``).
+
+    Args:
+        A, M: ``v ↦ A v`` and ``r ↦ M⁻¹ r`` on ``(n,)`` float64 arrays.
+        b: ``(n,)`` right-hand side; tol: absolute tolerance; max_iter: iteration cap.
+
+    Returns:
+        ``(x (n,), iterations, status)`` (status an ``int`` of :class:`Status`).
+    """
+    b = np.asarray(b, dtype=np.float64)
+    x = np.zeros_like(b)
+    r = b.copy()
+    if np.sqrt(_dot(r, r)) <= tol:  # (NaN goes on, to NEGATIVE_CURVATURE, as on the device)
+        return x, 0, int(Status.SUCCESS)
+    z = M(r)
+    z0 = z
+    p = z.copy()
+    rz = _dot(r, z)
+    for k in range(max_iter):
+        Ap = A(p)
+        pAp = _dot(p, Ap)
+        if not pAp > 0:  # also NaN
+            return (z0.copy() if k == 0 else x), k + 1, int(Status.NEGATIVE_CURVATURE)
+        alpha = rz / pAp
+        x += alpha * p
+        r -= alpha * Ap
+        if np.sqrt(_dot(r, r)) <= tol:
+            return x, k + 1, int(Status.SUCCESS)
+        z = M(r)
+        rz_new = _dot(r, z)
+        p *= rz_new / (rz if rz != 0 else 1.0)
+        p += z
+        rz = rz_new
+    return x, max_iter, int(Status.MAX_STEPS)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """``aᵀb`` of two ``(n,)`` arrays without a BLAS call (see :func:`host_cg`)."""
+    return float(np.einsum("i,i->", a, b))
+
+
+CHEBYSHEV_DEGREE = 2
+"""Degree of :class:`AMGSolver`'s Chebyshev smoother (one product with A per application
+from a zero guess, two otherwise). Measured at twist n = 29 (PCG to 1e-6): degree 2
+13 iterations at 13 ms per V-cycle, degree 3 11 at 18 ms."""
+
+CHEBYSHEV_INTERVAL = (1.0 / 30.0, 1.1)
+"""The part ``[lo·λ, hi·λ]`` of the spectrum of ``D⁻¹A`` the smoother damps, in units of
+the Lanczos estimate λ of its largest eigenvalue (PyAMG's ``setup_chebyshev`` defaults;
+the Lanczos Ritz value is a lower bound, the 10 % margin keeps the top inside)."""
+
+LANCZOS_STEPS = 10
+"""Lanczos steps of the ``λ_max(D⁻¹A)`` estimate per level and setup."""
+
+
+def _lanczos_start(n: int) -> np.ndarray:
+    """A fixed, dense start vector (no zero entries, not smooth)."""
+    i = np.arange(n, dtype=np.float64)
+    return np.sin(12.9898 * i + 0.5) + 1.5
+
+
+def _lanczos_max(A, s: np.ndarray, v0: np.ndarray, steps: int) -> tuple[float, np.ndarray]:
+    """Largest eigenvalue of ``S A S`` (``S = diag(s)``; SPD ``A``) and its Ritz vector, by
+    ``steps`` Lanczos steps from ``v0`` (no reorthogonalisation: only the extreme Ritz
+    value is used). The largest eigenvalue of ``SAS`` is that of ``S²A = D⁻¹A``."""
+    v = np.asarray(v0, dtype=np.float64).copy()
+    v /= np.sqrt(_dot(v, v))
+    V, alphas, betas = [], [], []
+    v_prev, beta = np.zeros_like(v), 0.0
+    for _ in range(max(1, min(steps, v.size))):
+        V.append(v)
+        w = s * (A @ (s * v)) - beta * v_prev
+        alpha = _dot(w, v)
+        w -= alpha * v
+        alphas.append(alpha)
+        beta = np.sqrt(_dot(w, w))
+        if not beta > 1e-14 * abs(alpha):  # an invariant subspace (or NaN): stop
+            break
+        betas.append(beta)
+        v_prev, v = v, w / beta
+    k = len(alphas)
+    T = np.diag(alphas) + np.diag(betas[: k - 1], 1) + np.diag(betas[: k - 1], -1)
+    evals, evecs = np.linalg.eigh(T)
+    lam = float(evals[-1])
+    ritz = np.stack(V, axis=1) @ evecs[:, -1]
+    if not (np.isfinite(lam) and lam > 0):
+        return 2.0, _lanczos_start(v.size)  # (D⁻¹A of an SPD matrix: λ_max ≤ #nonzeros/row)
+    return lam, ritz
+
+
+def _chebyshev_coefficients(a: float, b: float, degree: int) -> np.ndarray:
+    """Coefficients (highest power first) of ``q`` with ``1 − t q(t)`` the Chebyshev
+    polynomial of ``degree`` on ``[a, b]`` scaled to 1 at ``t = 0`` (the smoother
+    ``x ← x + q(D⁻¹A) D⁻¹ r`` damps the error by ``1 − t q(t)`` on that interval)."""
+    roots = 0.5 * (b - a) * (1.0 + np.cos(np.pi * (np.arange(degree) + 0.5) / degree)) + a
+    c = np.poly(roots)  # monic, highest power first
+    c = c / np.polyval(c, 0.0)  # C(0) = 1
+    return -c[:-1]  # C(t) = 1 − t q(t): q's coefficients are −c without the constant
+
+
+def _chebyshev_apply(A, dinv: np.ndarray, coeffs: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``q(D⁻¹A) D⁻¹ r`` by Horner's rule (``len(coeffs) − 1`` products with A)."""
+    y = dinv * r
+    h = coeffs[0] * y
+    for c in coeffs[1:]:
+        h = c * y + dinv * (A @ h)
+    return h
+
+
+def _cheb_v_cycle(levels, coarse_solver, cheb, lvl: int, b) -> np.ndarray:
+    """One V-cycle from a zero guess with the Chebyshev smoother (the same polynomial
+    before and after the coarse correction: a symmetric preconditioner)."""
+    level = levels[lvl]
+    A = level.A
+    dinv, coeffs = cheb[lvl]
+    x = _chebyshev_apply(A, dinv, coeffs, b)
+    coarse_b = level.R @ (b - A @ x)
+    if lvl == len(levels) - 2:
+        coarse_x = np.asarray(coarse_solver(levels[-1].A, coarse_b)).reshape(coarse_b.shape)
+    else:
+        coarse_x = _cheb_v_cycle(levels, coarse_solver, cheb, lvl + 1, coarse_b)
+    x += level.P @ coarse_x
+    x += _chebyshev_apply(A, dinv, coeffs, b - A @ x)
+    return x
 
 
 def _v_cycle(levels, coarse_solver, lvl: int, x, b) -> None:

@@ -338,6 +338,54 @@ class HostLinearSolver:
             status = np.int32(self._factor(data, mass_diag))
             return self._apply(r), status
 
+    def factor_cg_upper(
+        self, data, mass_diag, r, tol, max_iter, token=None
+    ) -> tuple[np.ndarray, np.int32, np.int32]:
+        """AMG only: :meth:`factor_upper`, then the whole preconditioned CG on the host
+        (:meth:`~jaxelastic.solvers.backends.AMGSolver.solve`: the assembled matrix and one
+        V-cycle per iteration), under one lock: ``(x, iterations, status)``.
+
+        For a Newton operator that *is* the assembled matrix (no self-contact coupling,
+        no matrix-free Hessian): one callback per Newton step instead of one per CG
+        iteration.
+
+        Args:
+            data, mass_diag: as :meth:`factor_upper`.
+            r: ``(n_nodes, dim)`` right-hand side (zero on fixed dofs).
+            tol: absolute residual tolerance (``‖r‖``, as the device CG); max_iter: cap.
+            token: ignored; a data dependency that orders the callbacks.
+
+        Returns:
+            ``x`` shaped and typed like ``r`` (zero on fixed dofs), the iteration count
+            and the status: :data:`NONFINITE` (nothing factorised, x NaN),
+            :data:`NOT_POSITIVE_DEFINITE` (a free diagonal entry ≤ 0: the CG ran anyway),
+            else the CG's (SUCCESS, MAX_STEPS or NEGATIVE_CURVATURE).
+        """
+        backend = self.backend
+        if not isinstance(backend, AMGSolver):
+            raise ValueError("factor_cg_upper is for kind='amg' (use factor_solve_upper)")
+        with self._lock:
+            self.calls += 1
+            status = self._factor(data, mass_diag)
+            r_in = np.asarray(r)
+            n, d = self.shape
+            if r_in.shape != (n, d):
+                raise ValueError(f"r must have shape ({n}, {d}), got {r_in.shape}")
+            if status == NONFINITE or not self._ready:
+                x = np.full((n * d,), np.nan)
+                x[self.fixed] = 0.0
+                return x.reshape(n, d).astype(r_in.dtype), np.int32(0), np.int32(NONFINITE)
+            b = np.array(r_in, dtype=np.float64).reshape(-1)
+            b[self.fixed] = 0.0
+            t0 = time.perf_counter()
+            x, its, st = backend.solve(b, float(tol), int(max_iter))
+            self.applications += its
+            self.last_info.update(cg_time=time.perf_counter() - t0, cg_iterations=its)
+            x[self.fixed] = 0.0
+            if status == NOT_POSITIVE_DEFINITE:
+                st = int(NOT_POSITIVE_DEFINITE)
+            return x.reshape(n, d).astype(r_in.dtype), np.int32(its), np.int32(st)
+
     def _apply(self, r) -> np.ndarray:
         self.applications += 1
         r_in = np.asarray(r)

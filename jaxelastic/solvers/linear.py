@@ -212,6 +212,10 @@ class NewtonSystem(NamedTuple):
         H: the Hessian operator ``v ↦ (∂²Π/∂x²) v`` (unmasked).
         A: the Dirichlet-masked operator ``v ↦ P_f H P_f v + P_D v``.
         operator: ``Ke ↦ A`` built from given element Hessians (for the projected retry).
+        assembled: ``A`` (and ``operator(K)``) is exactly the assembled matrix of the
+            element Hessians (plus the mass diagonal, Dirichlet rows and columns replaced by
+            identity): no matrix-free Hessian, no self-contact coupling. Host back ends
+            may then run the whole Krylov loop on the host.
     """
 
     pot: Potential
@@ -221,6 +225,7 @@ class NewtonSystem(NamedTuple):
     H: Callable
     A: Callable
     operator: Callable
+    assembled: bool = False
 
 
 def _masked_diag(system: NewtonSystem):
@@ -507,6 +512,16 @@ class AMG(_Host):
 
     def _factor_and_solve(self, system, A, Ke, md, rhs, tol, token):
         backend = self._require()
+        if system.assembled:  # A is the host's matrix: the whole PCG in one callback
+            out = (
+                jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+                jax.ShapeDtypeStruct((), jnp.int32),
+                jax.ShapeDtypeStruct((), jnp.int32),
+            )
+            data = _upper_data(backend, Ke)
+            max_iter = np.int32(self.max_iter)
+            fn = backend.factor_cg_upper
+            return _no_vmap_callback(fn, out, data, md, rhs, tol, max_iter, token)
         token = _host_factor(backend, Ke, md, token)
 
         def M(r):

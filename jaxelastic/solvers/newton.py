@@ -200,7 +200,10 @@ def _system(s: Newton, pot: Potential, x, free, Ke=None, pair_h=None) -> NewtonS
         def H(v):
             return KV(Ke_el, v)
 
-    return NewtonSystem(pot=pot, x=x, free=free, Ke=Ke, H=H, A=masked(H), operator=operator)
+    assembled = s.hessian != "hvp" and cpl is None
+    return NewtonSystem(
+        pot=pot, x=x, free=free, Ke=Ke, H=H, A=masked(H), operator=operator, assembled=assembled
+    )
 
 
 def is_quadratic(pot: Potential) -> bool:
