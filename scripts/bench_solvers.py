@@ -205,7 +205,8 @@ def breakdown_worker(n: int, solver: str, element: str = "p1") -> dict:
 
         return wrapped
 
-    orig = {k: getattr(N, k) for k in ("_host_system", "_host_linear", "_host_update")}
+    pieces = ("_host_system", "_host_linear", "_host_assembled_step", "_host_update")
+    orig = {k: getattr(N, k) for k in pieces}
     if host is not None:  # before compiling: the callbacks capture the bound methods
         for meth, name in (
             ("factor_upper", "host_factor"),
@@ -217,6 +218,7 @@ def breakdown_worker(n: int, solver: str, element: str = "p1") -> dict:
     cur.clear()
     N._host_system = timed("element_hessians_rhs", orig["_host_system"])
     N._host_linear = timed("linear_piece", orig["_host_linear"])
+    N._host_assembled_step = timed("linear_piece", orig["_host_assembled_step"])
 
     def update(*a, **k):
         out = timed("line_search_update", orig["_host_update"])(*a, **k)

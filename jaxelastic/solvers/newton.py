@@ -44,6 +44,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from .. import potential as pot_mod
@@ -53,7 +54,7 @@ from ..kinematics import deformation_gradients, det
 from ..loads import Dirichlet
 from ..potential import Potential
 from .heap import release_free_memory
-from .linear import NewtonSystem
+from .linear import NewtonSystem, assemble_upper
 from .results import RUNNING, Solution, Status
 
 __all__ = ["Newton", "HESSIANS", "host_minimize", "contact_potential"]
@@ -573,27 +574,80 @@ def _host_update(s: Newton, pot: Potential, bc: Dirichlet, c: dict, length, Ke, 
 _host_solution = jax.jit(_solution)
 
 
+@functools.partial(jax.jit, static_argnames="nnz_upper")
+def _host_upper(pot: Potential, Ke, element_map, nnz_upper: int):
+    """The assembled upper data of Ke (:func:`~jaxelastic.solvers.linear.assemble_upper`,
+    the map an argument: no callback, so the persistent cache keeps it) and the mass
+    diagonal ``(n_nodes,)`` (zeros for none)."""
+    md = pot_mod.mass_diagonal(pot)
+    if md is None:
+        md = jnp.zeros(pot.mesh.points.shape[:1], Ke.dtype)
+    return assemble_upper(Ke, element_map, nnz_upper), md
+
+
+@functools.partial(jax.jit, static_argnames="s")
+def _host_projected(s: Newton, pot: Potential, bc: Dirichlet, x, Ke, rhs, tol, ph, its0, st0):
+    return s.linear.projected_step(_system(s, pot, x, ~bc.mask, Ke, ph), rhs, tol, its0, st0)
+
+
+def _assembled_on_host(s: Newton, pot: Potential) -> bool:
+    """Whether a host Newton step can make its first linear solve outside jit
+    (:meth:`~jaxelastic.solvers.linear.Direct.assembled_step`): a host back end and an
+    operator that is the assembled element matrix (``NewtonSystem.assembled``)."""
+    if not hasattr(s.linear, "assembled_step") or s.hessian == "hvp":
+        return False
+    return pot.contact is None or getattr(pot.contact, "self_contact", None) is None
+
+
+def _host_assembled_step(s: Newton, pot: Potential, bc: Dirichlet, x, Ke, rhs, tol, ph):
+    """The linear solve of a host Newton step without an XLA callback: the upper data
+    assembled in XLA, the factorisation (and AMG's CG) called from Python; only a
+    projected retry (rare) runs a compiled piece with callbacks."""
+    host = s.linear.backend
+    data, md = _host_upper(pot, Ke, host.element_map, host.nnz_upper)
+    dx, its, st = s.linear.assembled_step(data, md, rhs, tol)
+    if st in (Status.NOT_POSITIVE_DEFINITE, Status.NEGATIVE_CURVATURE) or not np.all(
+        np.isfinite(dx)
+    ):
+        its0, st0 = jnp.asarray(its, jnp.int32), jnp.asarray(st, jnp.int32)
+        return _host_projected(s, pot, bc, x, Ke, rhs, tol, ph, its0, st0)
+    free = np.asarray(~bc.mask)
+    stats = dict(
+        iterations=jnp.asarray(its, jnp.int32),
+        residual=jnp.zeros((), rhs.dtype),
+        projected=jnp.asarray(False),
+    )
+    return Solution(x=jnp.asarray(dx * free, rhs.dtype), status=jnp.int32(st), stats=stats)
+
+
 def host_minimize(s: Newton, pot: Potential, bc: Dirichlet, x0) -> Solution:
     """:meth:`Newton.minimize` with the Newton loop in Python (same iterations, same
     result), for concrete inputs outside jit.
 
     Each iteration runs three compiled pieces: the element Hessians and right-hand side,
-    the linear solve (``s.linear.newton_step``: for the host back ends the only piece with
-    a host callback) and the line search + status update. JAX never writes an executable
+    the linear solve and the line search + status update. JAX never writes an executable
     with a host callback to the persistent compilation cache, so with the loop under
     ``lax.while_loop`` (:meth:`Newton.minimize`) a solve with ``Direct``/``AMG`` was
-    recompiled by every process; here only the small linear-solve piece is. Used by
-    :func:`jaxelastic.solve` for host linear solvers outside jit.
+    recompiled by every process. Where the Newton operator is the assembled matrix
+    (:func:`_assembled_on_host`) the linear solve is called from Python on data assembled
+    by a compiled piece without callbacks (:func:`_host_assembled_step`), so every piece
+    is cached; otherwise (self-contact coupling, ``hessian="hvp"``) the linear-solve
+    piece (``s.linear.newton_step``) holds the callbacks and is compiled in every
+    process. Used by :func:`jaxelastic.solve` for host linear solvers outside jit.
 
     Args: as :meth:`Newton.minimize` (``x0`` ``(n_nodes, dim)``); not traceable.
     """
     if isinstance(s.linear, str) or not s.linear.is_bound:
         raise ValueError("host_minimize needs a bound linear solver (use je.solve)")
     c, length = _host_start(s, pot, bc, x0)
+    outside = _assembled_on_host(s, pot)
     while int(c["status"]) == RUNNING:
         p = _with_kappa(pot, c)  # the adapted contact stiffness, if any
         Ke, rhs, tol, bn, ph = _host_system(s, p, bc, c)
-        lin = _host_linear(s, p, bc, c["x"], Ke, rhs, tol, ph)
+        if outside:
+            lin = _host_assembled_step(s, p, bc, c["x"], Ke, rhs, tol, ph)
+        else:
+            lin = _host_linear(s, p, bc, c["x"], Ke, rhs, tol, ph)
         if pot.contact is not None:  # self-contact: broad phase over the coming step
             step = jnp.where(bc.mask, bc.values - c["x"], lin.x)
             pot = pot.replace(contact=pot.contact.refreshed(c["x"], step))
