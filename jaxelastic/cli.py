@@ -36,12 +36,15 @@ even SIGKILL leaves only complete files.
 from __future__ import annotations
 
 import argparse
+import atexit
+import contextlib
 import json
 import os
 import sys
 import time
+from typing import NoReturn
 
-__all__ = ["main", "cache_dir"]
+__all__ = ["main", "command", "cache_dir"]
 
 
 def cache_dir() -> str:
@@ -306,6 +309,21 @@ def _run_interruptible(args) -> int:
             return _run(args)
     except KeyboardInterrupt as e:  # scene.interrupt.Interrupted, or Ctrl-C while starting
         return _interrupted(e)
+
+
+def command() -> NoReturn:
+    """The ``jaxelastic`` console script: :func:`main`, then a prompt process exit.
+
+    Every output is written and closed by then (atomic renames) and the ``atexit``
+    handlers run, but the interpreter's own teardown (freeing the compiled programs, the
+    XLA client and every module) is skipped: it took 0.5 s after a twist n = 29 run.
+    """
+    rc = main()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(rc)
 
 
 def main(argv=None) -> int:

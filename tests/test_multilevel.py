@@ -181,3 +181,26 @@ def test_iterations_grow_slowly_with_size():
         assert int(res.status) == 0
         its.append(int(res.stats["iterations"]))
     assert its[2] <= its[0] + 8 and its[2] <= 1.6 * its[0], its
+
+
+def test_projected_upper_by_blocks(beam, monkeypatch):
+    """The host Newton retry's block-by-block projection (a Python loop of compiled calls,
+    with a tail block) assembles the same upper data as projecting all cells at once."""
+    from jaxelastic.energy import project_psd
+    from jaxelastic.solvers import newton as N
+    from jaxelastic.solvers.linear import assemble_upper
+
+    mesh, bc, f = beam
+    pot = _pot(mesh, f, 1e3)
+    lin = je.solvers.bind_linear("direct", mesh, bc)
+    host = lin.backend
+    X = np.asarray(mesh.points)
+    x = jnp.asarray(
+        X * np.array([0.45, 1.0]) + 0.004 * np.random.default_rng(1).standard_normal(X.shape)
+    )
+    Ke = je.element_hessians(pot.psi, x, mesh, pot.params)
+    ref = assemble_upper(project_psd(Ke), jnp.asarray(host.element_map), host.nnz_upper)
+    monkeypatch.setattr(N, "PROJECT_BLOCK_CELLS", 7)
+    assert mesh.n_cells % 7 != 0  # a tail block
+    got = N._projected_upper(Ke, host.element_map, host.nnz_upper)
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12 * float(jnp.abs(ref).max()))

@@ -464,20 +464,14 @@ class _Host:
         Kp = project_psd(system.Ke)
         return self._factor_and_solve(system, system.operator(Kp), Kp, md, rhs, tol, token)
 
-    def projected_step(self, system: NewtonSystem, rhs, tol, its0, st0) -> Solution:
-        """The second half of :meth:`newton_step`, for a first attempt made outside
-        (:meth:`assembled_step`) that reported ``st0`` (not positive definite, negative
-        curvature or a non-finite step) after ``its0`` iterations."""
-        dx, its, st = self._projected(system, _masked_diag(system), rhs, tol, st0)
-        return _host_solution(system, dx, its0 + its, st, jnp.asarray(True), rhs)
-
     def assembled_step(self, data, md, rhs, tol) -> tuple[np.ndarray, int, int]:
-        """The first attempt of :meth:`newton_step` on the host, outside jit, for a Newton
-        operator that is the assembled matrix (``NewtonSystem.assembled``): ``(dx,
+        """One factorise-and-solve of :meth:`newton_step` on the host, outside jit, for a
+        Newton operator that is the assembled matrix (``NewtonSystem.assembled``): ``(dx,
         iterations, status)`` from the upper data (:func:`assemble_upper`) and the mass
-        diagonal. No XLA program holds the host call, so every compiled piece of the
-        host Newton loop goes to the persistent compilation cache (the one with the
-        callback took 0.46 s to compile in every process at twist n = 29)."""
+        diagonal; the caller makes the projected retry. No XLA program holds the host
+        call, so every compiled piece of the host Newton loop goes to the persistent
+        compilation cache (the one with the callback took 0.46 s to compile in every
+        process at twist n = 29)."""
         raise NotImplementedError
 
     def exact(self, system: NewtonSystem, b, rtol, max_iter: int) -> Solution:

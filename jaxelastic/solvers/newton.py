@@ -49,7 +49,7 @@ from jax import lax
 
 from .. import potential as pot_mod
 from ..contact.barrier import kappa_update
-from ..energy import assemble, hvp
+from ..energy import assemble, hvp, project_psd
 from ..kinematics import deformation_gradients, det
 from ..loads import Dirichlet
 from ..potential import Potential
@@ -585,9 +585,31 @@ def _host_upper(pot: Potential, Ke, element_map, nnz_upper: int):
     return assemble_upper(Ke, element_map, nnz_upper), md
 
 
-@functools.partial(jax.jit, static_argnames="s")
-def _host_projected(s: Newton, pot: Potential, bc: Dirichlet, x, Ke, rhs, tol, ph, its0, st0):
-    return s.linear.projected_step(_system(s, pot, x, ~bc.mask, Ke, ph), rhs, tol, its0, st0)
+@functools.partial(jax.jit, static_argnames=("size", "nnz_upper"), donate_argnums=0)
+def _add_projected(acc, Ke, element_map, start, size: int, nnz_upper: int):
+    """``acc`` plus the upper data of the PSD-projected Hessians of cells
+    ``start … start + size``."""
+    u = element_map.shape[0] // Ke.shape[0]
+    K = lax.dynamic_slice_in_dim(Ke, start, size)
+    e = lax.dynamic_slice_in_dim(element_map, start * u, size * u)
+    return acc + assemble_upper(project_psd(K), e, nnz_upper)
+
+
+PROJECT_BLOCK_CELLS = 65536
+"""Cells per call of the PSD projection in the host Newton loop's retry: one compiled call
+per block from Python (a ``lax`` loop around the batched LAPACK eigensolver deadlocked
+XLA:CPU at 511k tets, jaxlib 0.10), so the projected Hessians of all cells are never held
+at once (511k tets: 589 MB each copy)."""
+
+
+def _projected_upper(Ke, element_map, nnz_upper: int):
+    """The upper data of the PSD-projected element Hessians, block by block."""
+    c = Ke.shape[0]
+    acc = jnp.zeros((nnz_upper,), Ke.dtype)
+    for start in range(0, c, PROJECT_BLOCK_CELLS):
+        size = min(PROJECT_BLOCK_CELLS, c - start)
+        acc = _add_projected(acc, Ke, element_map, start, size, nnz_upper)
+    return acc
 
 
 def _assembled_on_host(s: Newton, pot: Potential) -> bool:
@@ -599,25 +621,37 @@ def _assembled_on_host(s: Newton, pot: Potential) -> bool:
     return pot.contact is None or getattr(pot.contact, "self_contact", None) is None
 
 
-def _host_assembled_step(s: Newton, pot: Potential, bc: Dirichlet, x, Ke, rhs, tol, ph):
+def _host_assembled_step(s: Newton, pot: Potential, bc: Dirichlet, Ke, rhs, tol) -> Solution:
     """The linear solve of a host Newton step without an XLA callback: the upper data
-    assembled in XLA, the factorisation (and AMG's CG) called from Python; only a
-    projected retry (rare) runs a compiled piece with callbacks."""
+    assembled in XLA, the factorisation (and AMG's CG) called from Python; if the matrix is
+    not positive definite (or the CG meets negative curvature, or the step is not finite),
+    the same with the PSD-projected element Hessians, as
+    :meth:`~jaxelastic.solvers.linear.Direct.newton_step` does."""
     host = s.linear.backend
-    data, md = _host_upper(pot, Ke, host.element_map, host.nnz_upper)
+    nnz = host.nnz_upper
+    data, md = _host_upper(pot, Ke, host.element_map, nnz)
     dx, its, st = s.linear.assembled_step(data, md, rhs, tol)
-    if st in (Status.NOT_POSITIVE_DEFINITE, Status.NEGATIVE_CURVATURE) or not np.all(
-        np.isfinite(dx)
-    ):
-        its0, st0 = jnp.asarray(its, jnp.int32), jnp.asarray(st, jnp.int32)
-        return _host_projected(s, pot, bc, x, Ke, rhs, tol, ph, its0, st0)
+    bad = _bad_step(dx, st)
+    if bad:
+        del data
+        data = _projected_upper(Ke, host.element_map, nnz)
+        dx, its2, st = s.linear.assembled_step(data, md, rhs, tol)
+        its += its2
+    if st == Status.NOT_POSITIVE_DEFINITE:
+        st = int(Status.SUCCESS)  # (as newton_step: a projected matrix that is singular)
     free = np.asarray(~bc.mask)
     stats = dict(
         iterations=jnp.asarray(its, jnp.int32),
         residual=jnp.zeros((), rhs.dtype),
-        projected=jnp.asarray(False),
+        projected=jnp.asarray(bad),
     )
     return Solution(x=jnp.asarray(dx * free, rhs.dtype), status=jnp.int32(st), stats=stats)
+
+
+def _bad_step(dx, st) -> bool:
+    """Whether a host linear solve calls for the projected retry."""
+    bad_status = st in (Status.NOT_POSITIVE_DEFINITE, Status.NEGATIVE_CURVATURE)
+    return bad_status or not bool(np.all(np.isfinite(dx)))
 
 
 def host_minimize(s: Newton, pot: Potential, bc: Dirichlet, x0) -> Solution:
@@ -645,7 +679,7 @@ def host_minimize(s: Newton, pot: Potential, bc: Dirichlet, x0) -> Solution:
         p = _with_kappa(pot, c)  # the adapted contact stiffness, if any
         Ke, rhs, tol, bn, ph = _host_system(s, p, bc, c)
         if outside:
-            lin = _host_assembled_step(s, p, bc, c["x"], Ke, rhs, tol, ph)
+            lin = _host_assembled_step(s, p, bc, Ke, rhs, tol)
         else:
             lin = _host_linear(s, p, bc, c["x"], Ke, rhs, tol, ph)
         if pot.contact is not None:  # self-contact: broad phase over the coming step
