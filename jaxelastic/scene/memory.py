@@ -15,7 +15,7 @@ of them in the element upper triangles (:func:`estimate_parts`):
   floats) and its symmetrised upper triangles (``U``), the input of the on-device CSR
   assembly (no host copy: only the ``(nnz_upper,)`` data vector crosses), plus the XLA
   temporaries of computing them (``c·q·k·d³`` and ``c·q·d⁴``);
-* host linear solvers (``direct``, ``amg``; ``auto`` picks direct up to 25k dofs in 3D, 80k
+* host linear solvers (``direct``, ``amg``; ``auto`` picks direct up to 10k dofs in 3D, 80k
   on P2 node sets): the int32 element → upper-CSR map (``U`` entries, 46 MB at 146k tets)
   and the CSR matrices with ``nnz ≈ E / r`` (``r`` measured on structured meshes: tri3
   2.5, tri6 1.5, tet4 5.6, tet10 2.4), a Cholesky factor of the upper triangle with a fill
@@ -68,7 +68,7 @@ _ELEMENTS = {
 }
 _NNZ_RATIO = {"tri3": 2.5, "tri6": 1.5, "tri3x4": 1.5, "tet4": 5.6, "tet10": 2.4, "tet4x8": 2.4}
 """``E / nnz`` of the assembled Hessian (measured on rectangle/box meshes)."""
-_AUTO_DIRECT_MAX_DOFS = {2: 100_000, 3: 25_000}
+_AUTO_DIRECT_MAX_DOFS = {2: 100_000, 3: 10_000}
 """As :data:`jaxelastic.solvers.linear.AUTO_DIRECT_MAX_DOFS` (``"auto"``: direct below)."""
 _AUTO_DIRECT_MAX_DOFS_P2 = {2: 100_000, 3: 80_000}
 """As :data:`jaxelastic.solvers.linear.AUTO_DIRECT_MAX_DOFS_P2` (P2 node sets)."""

@@ -564,9 +564,10 @@ class AMGSolver:
             operators until the CG's convergence per iteration degrades (below
             :data:`REFRESH_DIGITS_RATIO` of the reference's digits per iteration: then a
             Galerkin refresh); ``"none"`` keeps the old hierarchy as is (a preconditioner
-            for a nearby matrix). Measured on warm twist solves at n = 29 (loaded machine):
-            ``"fine"`` 7.5–7.8 s CPU and 34 CG iterations against ``"galerkin"``'s
-            8.7–9.0 s and 29 (the Galerkin products ``R A P`` are 0.2–0.35 s CPU a step).
+            for a nearby matrix). Default ``"fine"``: on warm twist solves at n = 29 with
+            the host CG and Chebyshev smoothing, 4.87–5.38 s and 44 CG iterations against
+            ``"galerkin"``'s 5.18–6.23 s and 40 (host setup 0.65–0.87 s against
+            1.41–1.86 s per solve; the Galerkin products ``R A P`` are 0.2 s a step).
         cycle: multigrid cycle of one :meth:`precondition` (``"V"``, ``"W"``, ``"F"``).
         smoother: ``"chebyshev"`` (default): a degree-:data:`CHEBYSHEV_DEGREE` Chebyshev
             polynomial in the Jacobi-scaled matrix ``D⁻¹A`` before and after the coarse

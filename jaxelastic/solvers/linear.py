@@ -70,11 +70,12 @@ __all__ = [
 ]
 
 LINEAR_SOLVERS = ("auto", "cg", "direct", "amg", "multilevel")
-AUTO_DIRECT_MAX_DOFS = {2: 100_000, 3: 25_000}
+AUTO_DIRECT_MAX_DOFS = {2: 100_000, 3: 10_000}
 """``"auto"``: sparse Cholesky up to this many dofs (per dimension), AMG-preconditioned CG
-above. 3D: measured with MKL PARDISO by ``scripts/bench_solvers.py`` on whole twist solves
-(5 Newton steps, warm; direct / AMG time 0.30 at 10k dofs, 0.93 at 24k, 1.49 at 47k:
-crossover ≈ 27k; the fill grows like n^(4/3) in 3D). 2D: the fill of a nested-dissection
+above. 3D: whole twist solves (5 Newton steps, warm, ``scripts/bench_solvers.py --sizes
+14,19 --solvers direct,amg --skip-extras``) with the host AMG-CG of session 7: direct /
+AMG 0.44 / 0.43 s at 10k dofs, 1.53 / 0.83 s at 24k (before it, with a host callback per
+CG iteration, the crossover was near 27k). 2D: the fill of a nested-dissection
 factorisation stays small (Cook P1 at 33k dofs: Cholesky 1.1 s vs AMG-CG 20 s,
 ``scripts/report_accuracy.py``)."""
 
@@ -545,14 +546,21 @@ class Direct(_Host):
 
 @dataclasses.dataclass(frozen=True)
 class AMG(_Host):
-    """CG on the device preconditioned by PyAMG smoothed aggregation (rigid-body modes) on
-    the host: one V-cycle per CG iteration through a callback.
+    """CG preconditioned by PyAMG smoothed aggregation (rigid-body modes, Chebyshev-smoothed
+    V-cycles, :class:`~jaxelastic.solvers.backends.AMGSolver`).
+
+    Where the Newton operator is the assembled matrix (``NewtonSystem.assembled``) the
+    whole CG runs on the host (one call per Newton step:
+    :meth:`~jaxelastic.solvers.host.HostLinearSolver.factor_cg_upper`); with self-contact
+    coupling or a matrix-free Hessian the CG runs on the device with one V-cycle per
+    iteration through a callback.
 
     Attributes:
         reuse: rebuild the hierarchy at the latest every ``reuse`` factorisations, and
             before that only when the CG's convergence per iteration has degraded
-            (:class:`~jaxelastic.solvers.backends.AMGSolver`); Galerkin refresh of the
-            coarse operators in between.
+            (:class:`~jaxelastic.solvers.backends.AMGSolver`); in between the new matrix
+            goes to the finest level, and the coarse operators get a Galerkin refresh
+            when the convergence degrades less.
         max_iter: CG iteration cap.
         backend: the bound host back end (set by :func:`bind_linear`).
     """

@@ -185,7 +185,7 @@ def solve(
         x0: ``(n_nodes, dim)`` initial positions (default: the rest shape; Dirichlet dofs
             need not be in place).
         solver: :class:`~jaxelastic.solvers.newton.Newton` settings and linear solver
-            (default ``linear="auto"``: sparse Cholesky up to 25k dofs in 3D, AMG-CG above,
+            (default ``linear="auto"``: sparse Cholesky up to 10k dofs in 3D, AMG-CG above,
             matrix-free CG on traced meshes).
         adjoint: :class:`~jaxelastic.solvers.adjoint.ImplicitAdjoint` settings of the
             derivative solves.
