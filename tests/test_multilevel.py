@@ -97,16 +97,21 @@ def test_float32_solve_matches_float64(beam):
     assert np.abs(u - u_ref).max() <= 1e-4 * np.abs(u_ref).max()
 
 
+def _compressed_start(mesh, bc):
+    """A start compressed to 45 % along x and perturbed: an indefinite Hessian."""
+    X = np.asarray(mesh.points)
+    rng = np.random.default_rng(0)
+    x0 = X * np.array([0.45, 1.0]) + 0.004 * rng.standard_normal(X.shape)
+    return jnp.asarray(np.where(np.asarray(bc.mask), X, x0))
+
+
 def test_indefinite_start_projects_and_recovers(beam):
     """From a strongly compressed start the Hessian is indefinite: CG meets negative
     curvature, the element Hessians are PSD-projected, and the solve still converges to
     the direct solver's answer."""
     mesh, bc, f = beam
     pot = _pot(mesh, f, 1e3)
-    X = np.asarray(mesh.points)
-    rng = np.random.default_rng(0)
-    x0 = X * np.array([0.45, 1.0]) + 0.004 * rng.standard_normal(X.shape)
-    x0 = jnp.asarray(np.where(np.asarray(bc.mask), X, x0))
+    x0 = _compressed_start(mesh, bc)
     newton = je.Newton(linear=ML, **TIGHT)
     res = je.solve(pot, bc, x0=x0, solver=newton)
     assert int(res.stats["projected"]) + int(res.stats["negative_curvature"]) >= 1
@@ -117,14 +122,12 @@ def test_indefinite_start_projects_and_recovers(beam):
 @pytest.mark.parametrize("kind", ["direct", "amg"])
 def test_host_newton_indefinite_start_projects(beam, kind):
     """The host Newton loop's first solve runs outside jit on the assembled matrix
-    (newton._host_assembled_step); from an indefinite start the projected retry (a compiled
-    piece) takes over, and the solve converges to the device solver's answer."""
+    (newton._host_assembled_step); from an indefinite start the projected retry (blocks
+    projected by compiled calls) takes over, and the solve converges to the device
+    solver's answer."""
     mesh, bc, f = beam
     pot = _pot(mesh, f, 1e3)
-    X = np.asarray(mesh.points)
-    rng = np.random.default_rng(0)
-    x0 = X * np.array([0.45, 1.0]) + 0.004 * rng.standard_normal(X.shape)
-    x0 = jnp.asarray(np.where(np.asarray(bc.mask), X, x0))
+    x0 = _compressed_start(mesh, bc)
     res = je.solve(pot, bc, x0=x0, solver=je.Newton(linear=kind, **TIGHT))
     assert int(res.status) == 0
     assert int(res.stats["projected"]) >= 1
