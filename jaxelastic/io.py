@@ -294,11 +294,12 @@ def _orient_facets(facets: np.ndarray, boundary: np.ndarray) -> np.ndarray:
     return out
 
 
-def _von_mises(s3):
-    """Von Mises stress of ``(..., 3, 3)`` Cauchy stresses."""
-    eye = jnp.eye(3, dtype=s3.dtype).reshape((1,) * (s3.ndim - 2) + (3, 3))
-    dev = s3 - jnp.trace(s3, axis1=-2, axis2=-1)[..., None, None] / 3.0 * eye
-    return jnp.sqrt(1.5 * jnp.sum(dev * dev, axis=(-2, -1)))
+def _von_mises(s3, xp=jnp):
+    """Von Mises stress of ``(..., 3, 3)`` Cauchy stresses (``xp``: ``jnp`` under jit, or
+    ``np`` for host arrays)."""
+    eye = xp.eye(3, dtype=s3.dtype).reshape((1,) * (s3.ndim - 2) + (3, 3))
+    dev = s3 - xp.trace(s3, axis1=-2, axis2=-1)[..., None, None] / 3.0 * eye
+    return xp.sqrt(1.5 * xp.sum(dev * dev, axis=(-2, -1)))
 
 
 def _embed3(F):
@@ -536,17 +537,11 @@ def stress_fields(psi, x, mesh: Mesh, params, *, plane: str = "strain") -> tuple
             UserWarning,
             stacklevel=3,
         )
-    # numpy, not _von_mises: its eager jnp ops took 0.09 s (dispatch + compile or
-    # persistent-cache loads) in a fresh CLI process, numpy takes 2 ms at 27k nodes
-    points = {"cauchy_stress_nodal": nodal, "von_mises_nodal": _von_mises_np(nodal)}
+    # in numpy: eager jnp ops took 0.09 s (dispatch + compile or persistent-cache loads)
+    # in a fresh CLI process, numpy takes 2 ms at 27k nodes
+    vm = _von_mises(np.asarray(nodal).reshape(-1, 3, 3), np)
+    points = {"cauchy_stress_nodal": nodal, "von_mises_nodal": vm}
     return out, points
-
-
-def _von_mises_np(s9: np.ndarray) -> np.ndarray:
-    """Von Mises stress ``(n,)`` of ``(n, 9)`` row-major Cauchy stresses (numpy)."""
-    s3 = s9.reshape(-1, 3, 3)
-    dev = s3 - (np.trace(s3, axis1=-2, axis2=-1) / 3.0)[:, None, None] * np.eye(3, dtype=s3.dtype)
-    return np.sqrt(1.5 * np.sum(dev * dev, axis=(-2, -1)))
 
 
 def _pad3(a: np.ndarray) -> np.ndarray:
