@@ -791,7 +791,7 @@ class AMGSolver:
             return self.precondition(r[:, 0])[:, None]
         if r.ndim == 1:
             r = np.ascontiguousarray(r)
-            self._norms.append(float(np.sqrt(np.einsum("i,i->", r, r))))  # (no BLAS call)
+            self._norms.append(float(np.sqrt(_dot(r, r))))
             return np.asarray(self._M(r), dtype=np.float64).reshape(r.shape)
         return np.stack([self._M(np.ascontiguousarray(c)) for c in r.T], axis=1)
 

@@ -400,14 +400,6 @@ def _no_vmap_callback(fn, out, *args):
     return call(*args)
 
 
-def _host_solution(system: NewtonSystem, dx, its, st, projected, rhs) -> Solution:
-    """The :class:`Solution` of a host Newton step (a non-SPD first matrix that the
-    projection fixed counts as success)."""
-    st = jnp.where(st == Status.NOT_POSITIVE_DEFINITE, jnp.int32(Status.SUCCESS), st)
-    stats = dict(iterations=its, residual=jnp.zeros((), rhs.dtype), projected=projected)
-    return Solution(x=dx * system.free, status=st.astype(jnp.int32), stats=stats)
-
-
 @dataclasses.dataclass(frozen=True)
 class _Host:
     """Shared logic of the host back ends (:class:`Direct`, :class:`AMG`)."""
@@ -454,16 +446,15 @@ class _Host:
         bad = bad | ~jnp.all(jnp.isfinite(dx))
 
         def retry(_):
-            dx2, its2, st2 = self._projected(system, md, rhs, tol, st)
+            Kp = project_psd(system.Ke)
+            A = system.operator(Kp)
+            dx2, its2, st2 = self._factor_and_solve(system, A, Kp, md, rhs, tol, st)
             return dx2, its + its2, st2
 
         dx, its, st = lax.cond(bad, retry, lambda _: (dx, its, st), None)
-        return _host_solution(system, dx, its, st, bad, rhs)
-
-    def _projected(self, system: NewtonSystem, md, rhs, tol, token):
-        """``(dx, iterations, status)`` of the PSD-projected element Hessians."""
-        Kp = project_psd(system.Ke)
-        return self._factor_and_solve(system, system.operator(Kp), Kp, md, rhs, tol, token)
+        st = jnp.where(st == Status.NOT_POSITIVE_DEFINITE, jnp.int32(Status.SUCCESS), st)
+        stats = dict(iterations=its, residual=jnp.zeros((), rhs.dtype), projected=bad)
+        return Solution(x=dx * system.free, status=st.astype(jnp.int32), stats=stats)
 
     def assembled_step(self, data, md, rhs, tol) -> tuple[np.ndarray, int, int]:
         """One factorise-and-solve of :meth:`newton_step` on the host, outside jit, for a

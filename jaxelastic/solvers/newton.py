@@ -201,10 +201,19 @@ def _system(s: Newton, pot: Potential, x, free, Ke=None, pair_h=None) -> NewtonS
         def H(v):
             return KV(Ke_el, v)
 
-    assembled = s.hessian != "hvp" and cpl is None
+    assembled = _operator_is_assembled(s, pot)
+    assert not assembled or cpl is None
     return NewtonSystem(
         pot=pot, x=x, free=free, Ke=Ke, H=H, A=masked(H), operator=operator, assembled=assembled
     )
+
+
+def _operator_is_assembled(s: Newton, pot: Potential) -> bool:
+    """Whether the Newton operator is the assembled element matrix
+    (``NewtonSystem.assembled``): element Hessians (not ``hessian="hvp"``) and no
+    self-contact coupling. Decided by structure only, so also outside a trace."""
+    no_coupling = pot.contact is None or getattr(pot.contact, "self_contact", None) is None
+    return s.hessian != "hvp" and no_coupling
 
 
 def is_quadratic(pot: Potential) -> bool:
@@ -647,9 +656,7 @@ def _assembled_on_host(s: Newton, pot: Potential) -> bool:
     """Whether a host Newton step can make its first linear solve outside jit
     (:meth:`~jaxelastic.solvers.linear.Direct.assembled_step`): a host back end and an
     operator that is the assembled element matrix (``NewtonSystem.assembled``)."""
-    if not hasattr(s.linear, "assembled_step") or s.hessian == "hvp":
-        return False
-    return pot.contact is None or getattr(pot.contact, "self_contact", None) is None
+    return hasattr(s.linear, "assembled_step") and _operator_is_assembled(s, pot)
 
 
 def _host_assembled_step(s: Newton, pot: Potential, bc: Dirichlet, Ke, rhs, tol) -> Solution:
