@@ -47,6 +47,7 @@ import numpy as np
 from jax.core import Tracer
 
 from .kinematics import b_bar, cofactor, deformation_gradients, det, displacements, f_bar
+from .mesh.elements import get_element
 
 __all__ = [
     "first_piola",
@@ -603,47 +604,121 @@ def _materialize(a, pred):
     )
 
 
-def _contract_hessians(Ch, dN, pred):
+def _contract_hessians(Ch, dN, G: np.ndarray, pred):
     """``K[c,k,a,l,x] = Σ_q Σ_{b,e} ∇N_k,b(q) Ĉ_q[a,b,x,e] ∇N_l,e(q)`` for every cell.
 
     Args:
         Ch: ``(c, q, d, d, d, d)`` per-point tensors Ĉ (quadrature weights included).
         dN: ``(c, q, k, d)`` shape-function gradients.
+        G: ``(q, k, d)`` the element's reference gradients at its quadrature points
+            (``Element.shape_gradients()``), of which ``dN`` is the push-forward.
         pred: :func:`_always` of the mesh (for :func:`_materialize`).
 
     Returns:
         ``(c, k, d, k, d)`` element Hessians (node-major dofs).
 
-    Written as fused broadcasts, not as ``einsum``: over cells, the einsum
-    ``"cqkb,cqabxe,cqle->ckalx"`` is a batched dot_general of tiny matrices on XLA:CPU
-    (measured on 100k tet4: 262 ms einsum vs 45 ms unrolled; see scripts/bench_kernels.py).
-    P1 (one point): the d² (b, e) terms are unrolled into one fused loop over the output.
-    More points: two stages, ``T[c,q,k,a,x,e] = Σ_b ∇N_k,b Ĉ[a,b,x,e]`` (d terms) and then
-    the q·d terms of ``Σ_{q,e} T[q,k,a,x,e] ∇N_l,e`` — k·d⁴·q·(1 + k/d) multiply-adds
-    instead of the (k·d)²·q·d² of the naive sum.
+    Never an ``einsum``: over cells, ``"cqkb,cqabxe,cqle->ckalx"`` is a batched dot_general
+    of tiny matrices on XLA:CPU (measured on 100k tet4: 262 ms einsum vs 45 ms unrolled;
+    see scripts/bench_kernels.py). P1 (one point): the d² (b, e) terms are unrolled into
+    one fused loop over the output. More points: one matrix product per block of cells
+    (:func:`_contract_hessians_pulled_back`).
     """
     _, q, k, d = dN.shape
+    if q > 1:
+        return _contract_hessians_pulled_back(Ch, dN, G, pred)
     Ch = _materialize(Ch, pred)
-    if q == 1:
-        N = dN[:, 0]  # (c, k, d)
-        out = None
-        for b in range(d):
-            Nb = N[:, :, None, None, None, b]  # (c, k, 1, 1, 1)
-            for e in range(d):
-                term = Nb * Ch[:, 0, None, :, b, None, :, e] * N[:, None, None, :, None, e]
-                out = term if out is None else out + term
-        assert out is not None
-        return out
-    T = dN[:, :, :, None, None, None, 0] * Ch[:, :, None, :, 0, :, :]  # (c, q, k, a, x, e)
-    for b in range(1, d):
-        T = T + dN[:, :, :, None, None, None, b] * Ch[:, :, None, :, b, :, :]
-    # T is not materialised: storing it (k/d times the size of Ĉ) measured 1.2× slower
+    N = dN[:, 0]  # (c, k, d)
     out = None
-    for i in range(q):
+    for b in range(d):
+        Nb = N[:, :, None, None, None, b]  # (c, k, 1, 1, 1)
         for e in range(d):
-            term = T[:, i, :, :, None, :, e] * dN[:, i, None, None, :, None, e]
+            term = Nb * Ch[:, 0, None, :, b, None, :, e] * N[:, None, None, :, None, e]
             out = term if out is None else out + term
     assert out is not None
+    return out
+
+
+def _pair_gemm_matrix(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The constant matrix of the reference-frame contraction, and its node-pair table.
+
+    Args:
+        G: ``(q, k, d)`` reference shape-function gradients ``∇̂N_k(ξ_q)``.
+
+    Returns:
+        ``M`` ``(q·d·d, P)`` with ``M[(q, β, ε), p] = ∇̂N_k,β(ξ_q) ∇̂N_l,ε(ξ_q)`` for the
+        ``P = k(k+1)/2`` node pairs ``p = (k, l)``, ``k ≤ l``, and ``index`` ``(k, k)``, the
+        pair of ``(k, l)`` in either order.
+    """
+    q, k, d = G.shape
+    pairs = [(a, b) for a in range(k) for b in range(a, k)]
+    M = np.empty((q, d, d, len(pairs)))
+    index = np.empty((k, k), dtype=np.int32)
+    for p, (a, b) in enumerate(pairs):
+        M[..., p] = G[:, a, :, None] * G[:, b, None, :]
+        index[a, b] = index[b, a] = p
+    return M.reshape(q * d * d, len(pairs)), index
+
+
+def _contract_hessians_pulled_back(Ch, dN, G: np.ndarray, pred):
+    """:func:`_contract_hessians` for cells with several quadrature points, as one matrix
+    product over all cells of a block: BLAS-rate (about 50 GFLOP/s on 2 cores), where the
+    former two-stage sum of fused broadcasts ran at a few; whole tet10 element Hessians
+    measured 2.2× faster (F-bar 1.5×; docs/guide/performance.md).
+
+    Every element of :func:`~jaxelastic.mesh` has ``∇N_k(q) = J_q⁻ᵀ ∇̂N_k(ξ_q)``, so
+
+        K[c,k,a,l,x] = Σ_{q,β,ε} ∇̂N_k,β(ξ_q) C̃[c,q,a,β,x,ε] ∇̂N_l,ε(ξ_q),
+        C̃[c,q,a,β,x,ε] = Σ_{b,e} J⁻¹[β,b] Ĉ_q[a,b,x,e] J⁻¹[ε,e]
+
+    (Ĉ pulled back to the reference element; ``J⁻¹ = pinv(∇̂N(ξ_q)) ∇N(q)`` is recovered
+    exactly from ``dN``). The first factor is the same for every cell: ``C̃`` reshaped to
+    ``(c·d², q·d²)`` times the constant ``(q·d², k(k+1)/2)`` matrix of
+    :func:`_pair_gemm_matrix` gives the node pairs ``k ≤ l``; symmetry
+    (``K[k,a,l,x] = K[l,x,k,a]``) fills the rest.
+
+    Args:
+        Ch: ``(c, q, d, d, d, d)``; dN: ``(c, q, k, d)``; G: ``(q, k, d)`` the element's
+            reference gradients at its quadrature points; pred: :func:`_always`.
+
+    Returns:
+        ``(c, k, d, k, d)`` element Hessians.
+    """
+    c, q, k, d = dN.shape
+    Ch = _materialize(Ch, pred)
+    pinv = jnp.asarray(np.stack([np.linalg.pinv(G[i]) for i in range(q)]), dN.dtype)
+    Ji = _sum_terms(  # J⁻¹ (c, q, β, b) from dN = G J⁻¹
+        pinv[None, :, :, n, None] * dN[:, :, None, n, :] for n in range(k)
+    )
+    Ji = _materialize(Ji, pred)
+    T = _sum_terms(  # (c, q, a, β, x, e)
+        Ji[:, :, None, :, None, None, b] * Ch[:, :, :, None, b, :, :] for b in range(d)
+    )
+    Ct = _sum_terms(  # (c, a, x, q, β, ε)
+        jnp.transpose(T[..., e], (0, 2, 4, 1, 3))[..., None]
+        * Ji[:, None, None, :, :, e][..., None, :]
+        for e in range(d)
+    )
+    M, index = _pair_gemm_matrix(G)
+    out = jnp.dot(
+        Ct.reshape(c * d * d, q * d * d),
+        jnp.asarray(M, dN.dtype),
+        precision=jax.lax.Precision.HIGHEST,
+    ).reshape(c, d, d, -1)
+    full = out[:, :, :, index]  # (c, a, x, k, l): the pair of (k, l) at (a, x)
+    upper = (np.arange(k)[:, None] <= np.arange(k)[None, :])[None, :, None, :, None]
+    return jnp.where(
+        upper,
+        jnp.transpose(full, (0, 3, 1, 4, 2)),  # K[c,k,a,l,x] = pair(k,l)[a,x]   (k ≤ l)
+        jnp.transpose(full, (0, 3, 2, 4, 1)),  # K[c,k,a,l,x] = pair(l,k)[x,a]   (k > l)
+    )
+
+
+def _sum_terms(terms):
+    """The sum of an iterable of arrays (at least one), as one fused broadcast expression."""
+    it = iter(terms)
+    out = next(it)
+    for t in it:
+        out = out + t
     return out
 
 
@@ -832,7 +907,7 @@ def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = Fa
         pred = _always(cells_b)  # outside the per-cell vmap: the conditionals stay
         terms = _element_hessian_terms(psi, form, pred)
         Ch, g, z, kappa = _per_cell(terms, p, n)(ue_b, dN_b, w_b, p)
-        K = _contract_hessians(Ch, dN_b, pred)  # (n, k, d, k, d)
+        K = _contract_hessians(Ch, dN_b, G, pred)  # (n, k, d, k, d)
         if g is not None:
             g, z, kappa = _materialize((g, z, kappa), pred)
             gz = g[:, :, :, None, None] * z[:, None, None, :, :]
@@ -840,6 +915,7 @@ def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = Fa
             K = K + gz + jnp.transpose(gz, (0, 3, 4, 1, 2)) + kappa[:, None, None, None, None] * gg
         return K.reshape(n, k * d, k * d)
 
+    G = get_element(mesh.element).shape_gradients()
     args = (ue, mesh.dN, mesh.weights, mesh.cells, cell_leaves)
     B = _hessian_block_cells(mesh.dN.shape[1], k, d)
     nb = c // B
@@ -858,14 +934,15 @@ def _hessian_block_cells(q: int, k: int, d: int) -> int:
     """Cells per block of :func:`element_hessians` (a ``lax.map`` over blocks).
 
     One quadrature point (P1): no blocks (they measured 1.25× slower on 100k tet4). More
-    points: the two-stage contraction holds q·k·d³ numbers per cell (30 kB for tet10);
-    blocks of about 8 MB of intermediates bound the memory and keep them in cache
-    (measured 1.25–1.3× faster for 10k tet10 than all cells at once, and a 100k-tet10
-    call no longer holds 3 GB of intermediates).
+    points: Ĉ, its pull-back and the element Hessians take about q·d⁴·3 + (k·d)² numbers
+    per cell (30 kB for tet10); blocks of about 8 MB bound the memory (a 100k-tet10 call
+    would otherwise hold 3 GB of intermediates, and ran 2.4× slower unblocked). The time
+    does not depend on the block size between 64 and 8192 tet10 cells (1.50–1.57 s per
+    100k cells, measured).
     """
     if q == 1:
         return 1 << 62
-    return max(64, (1 << 20) // (q * k * d**3 + (k * d) ** 2))
+    return max(64, (1 << 20) // (3 * q * d**4 + (k * d) ** 2))
 
 
 def element_hessians_reference(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
