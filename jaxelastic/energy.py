@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
+from .fusion import always, stored
 from .kinematics import b_bar, cofactor, deformation_gradients, det, displacements, f_bar
 from .mesh.elements import get_element
 
@@ -579,31 +580,6 @@ def project_psd_serial(K: jax.Array, floor: float = 0.0) -> jax.Array:
 # (B[(a,b),(k,x)] = δ_ax ∇N_k,b) is used, never B itself: see _contract_hessian.
 
 
-def _always(cells) -> jax.Array:
-    """A traced predicate that is true for every valid mesh (indices are ≥ 0), for
-    :func:`_materialize`."""
-    return jnp.min(cells[:1]) >= 0
-
-
-def _materialize(a, pred):
-    """``a`` unchanged, but computed once and stored before its consumers read it.
-
-    XLA:CPU fuses a producer into every consumer loop that reads it, recomputing it per
-    read: the autodiff ``∂²ψ/∂F²`` (hundreds of operations per point) fused into the
-    contraction was recomputed for each of the (k·d)² entries (measured 1.8× slower for
-    tet4 than with Ĉ stored). ``lax.optimization_barrier`` does not stop that fusion on
-    CPU; a conditional does. ``pred`` (:func:`_always`, computed outside any per-cell
-    vmap so that the conditional stays one) is always true; the other branch gives NaN,
-    so it could never be taken silently.
-    """
-    return jax.lax.cond(
-        pred,
-        lambda t: t,
-        lambda t: jax.tree_util.tree_map(lambda b: jnp.full_like(b, jnp.nan), t),
-        a,
-    )
-
-
 def _contract_hessians(Ch, dN, G: np.ndarray, pred):
     """``K[c,k,a,l,x] = Σ_q Σ_{b,e} ∇N_k,b(q) Ĉ_q[a,b,x,e] ∇N_l,e(q)`` for every cell.
 
@@ -612,7 +588,8 @@ def _contract_hessians(Ch, dN, G: np.ndarray, pred):
         dN: ``(c, q, k, d)`` shape-function gradients.
         G: ``(q, k, d)`` the element's reference gradients at its quadrature points
             (``Element.shape_gradients()``), of which ``dN`` is the push-forward.
-        pred: :func:`_always` of the mesh (for :func:`_materialize`).
+        pred: :func:`~jaxelastic.fusion.always` of the mesh (for
+            :func:`~jaxelastic.fusion.stored`).
 
     Returns:
         ``(c, k, d, k, d)`` element Hessians (node-major dofs).
@@ -626,7 +603,7 @@ def _contract_hessians(Ch, dN, G: np.ndarray, pred):
     _, q, k, d = dN.shape
     if q > 1:
         return _contract_hessians_pulled_back(Ch, dN, G, pred)
-    Ch = _materialize(Ch, pred)
+    Ch = stored(Ch, pred)
     N = dN[:, 0]  # (c, k, d)
     out = None
     for b in range(d):
@@ -678,18 +655,18 @@ def _contract_hessians_pulled_back(Ch, dN, G: np.ndarray, pred):
 
     Args:
         Ch: ``(c, q, d, d, d, d)``; dN: ``(c, q, k, d)``; G: ``(q, k, d)`` the element's
-            reference gradients at its quadrature points; pred: :func:`_always`.
+            reference gradients at its quadrature points; pred: :func:`~jaxelastic.fusion.always`.
 
     Returns:
         ``(c, k, d, k, d)`` element Hessians.
     """
     c, q, k, d = dN.shape
-    Ch = _materialize(Ch, pred)
+    Ch = stored(Ch, pred)
     pinv = jnp.asarray(np.stack([np.linalg.pinv(G[i]) for i in range(q)]), dN.dtype)
     Ji = _sum_terms(  # J⁻¹ (c, q, β, b) from dN = G J⁻¹
         pinv[None, :, :, n, None] * dN[:, :, None, n, :] for n in range(k)
     )
-    Ji = _materialize(Ji, pred)
+    Ji = stored(Ji, pred)
     T = _sum_terms(  # (c, q, a, β, x, e)
         Ji[:, :, None, :, None, None, b] * Ch[:, :, :, None, b, :, :] for b in range(d)
     )
@@ -793,7 +770,8 @@ def _fbar_hessian_terms(psi, F, w, p, form: str, pred):
         psi: ψ(F, params).
         F: ``(q, d, d)`` compatible deformation gradients; w: ``(q,)`` weights; p: params.
         form: ``"fbar"`` or ``"bbar"``.
-        pred: :func:`_always` (stores C and y once, see :func:`_materialize`).
+        pred: :func:`~jaxelastic.fusion.always` (stores C and y once, see
+            :func:`~jaxelastic.fusion.stored`).
 
     Returns:
         ``(Ĉ, Gq, Zq, κ)``: Ĉ ``(q, d, d, d, d)``; Gq, Zq ``(q, d, d)`` with
@@ -805,9 +783,9 @@ def _fbar_hessian_terms(psi, F, w, p, form: str, pred):
     omega = w / jnp.where(jnp.sum(w) > 0, jnp.sum(w), 1.0)  # Σw = 0: a padded cell
     if form == "bbar":
         Fb = b_bar(F, w)
-        C = _materialize(H(Fb, p), pred)  # (q, d, d, d, d)
+        C = stored(H(Fb, p), pred)  # (q, d, d, d, d)
         I = jnp.broadcast_to(eye, F.shape)
-        y = _materialize(w[:, None, None] * _ddot(C, I), pred)
+        y = stored(w[:, None, None] * _ddot(C, I), pred)
         gam = jnp.trace(y, axis1=-2, axis2=-1)
         Ch = (
             w[:, None, None, None, None] * C
@@ -827,10 +805,10 @@ def _fbar_hessian_terms(psi, F, w, p, form: str, pred):
     theta = ratio ** (1.0 / d)
     Fb = theta[:, None, None] * F
     P = jax.vmap(jax.grad(psi, argnums=0), in_axes=(0, None))(Fb, p)
-    P, C = _materialize((P, H(Fb, p)), pred)
+    P, C = stored((P, H(Fb, p)), pred)
     Fi = cof / jnp.where(ok, J, 1.0)[:, None, None]  # F⁻ᵀ where ok (else unused)
     wt = w * theta
-    y = _materialize((wt * theta)[:, None, None] * _ddot(C, F) + wt[:, None, None] * P, pred)
+    y = stored((wt * theta)[:, None, None] * _ddot(C, F) + wt[:, None, None] * P, pred)
     gam = jnp.sum(y * F, axis=(-2, -1))
     alpha = jnp.sum(P * F, axis=(-2, -1))
     A = jnp.sum(o * wt * alpha)
@@ -904,12 +882,12 @@ def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = Fa
             [next(it) if ax == 0 else leaf for leaf, ax in zip(leaves, is_cell, strict=True)],
         )
         n = ue_b.shape[0]
-        pred = _always(cells_b)  # outside the per-cell vmap: the conditionals stay
+        pred = always(cells_b)  # outside the per-cell vmap: the conditionals stay
         terms = _element_hessian_terms(psi, form, pred)
         Ch, g, z, kappa = _per_cell(terms, p, n)(ue_b, dN_b, w_b, p)
         K = _contract_hessians(Ch, dN_b, G, pred)  # (n, k, d, k, d)
         if g is not None:
-            g, z, kappa = _materialize((g, z, kappa), pred)
+            g, z, kappa = stored((g, z, kappa), pred)
             gz = g[:, :, :, None, None] * z[:, None, None, :, :]
             gg = g[:, :, :, None, None] * g[:, None, None, :, :]
             K = K + gz + jnp.transpose(gz, (0, 3, 4, 1, 2)) + kappa[:, None, None, None, None] * gg

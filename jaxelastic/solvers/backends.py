@@ -24,6 +24,7 @@ node-major: dof ``a*dim + i`` is component ``i`` of node ``a``.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import sys
 import time
@@ -634,6 +635,7 @@ class AMGSolver:
         self.ml = None
         self._M = None
         self._A = None  # the matrix of the last update (host CG operator)
+        self._threaded = None  # (A's product, cycle) with split products, for solve
         self._updates_since_build = 0
         self.setup_time = 0.0
         self.rebuilt = False
@@ -657,6 +659,7 @@ class AMGSolver:
         if n != self.B.shape[0]:
             raise ValueError(f"matrix has {n} rows, the modes {self.B.shape[0]}")
         self._M = None
+        self._threaded = None
         A = self._amg_matrix(K)
         self._A = A
         self.rate = _convergence_factor(self._norms)
@@ -691,8 +694,9 @@ class AMGSolver:
         ratio = REFRESH_DIGITS_RATIO if refresh else REBUILD_DIGITS_RATIO
         return bool(np.log(rate) > ratio * np.log(ref))  # digits per iteration: −log ρ
 
-    def _cycle_function(self):
-        """``r ↦ M⁻¹r`` (one cycle from a zero guess) of the current hierarchy.
+    def _cycle_function(self, threads: bool = False):
+        """``r ↦ M⁻¹r`` (one cycle from a zero guess) of the current hierarchy
+        (``threads``: the Chebyshev V-cycle's level products by :func:`split_matvec`).
 
         V-cycles traverse the levels here, as PyAMG's ``MultilevelSolver.solve`` does with
         ``maxiter=1`` but without the residual norms and the two extra fine-level products
@@ -707,7 +711,8 @@ class AMGSolver:
             levels, coarse, cheb = ml.levels, ml.coarse_solver, self._cheb
             if len(levels) == 1:
                 return lambda b: coarse(levels[0].A, b)
-            return lambda b: _cheb_v_cycle(levels, coarse, cheb, 0, b)
+            mvs = [split_matvec(lv.A) if threads else lv.A.__matmul__ for lv in levels[:-1]]
+            return lambda b: _cheb_v_cycle(levels, coarse, cheb, mvs, 0, b)
         if self.cycle != "V" or len(ml.levels) == 1:
             return ml.aspreconditioner(cycle=self.cycle).matvec
         levels, coarse = ml.levels, ml.coarse_solver
@@ -795,7 +800,9 @@ class AMGSolver:
             return np.asarray(self._M(r), dtype=np.float64).reshape(r.shape)
         return np.stack([self._M(np.ascontiguousarray(c)) for c in r.T], axis=1)
 
-    def solve(self, b, tol: float, max_iter: int) -> tuple[np.ndarray, int, int]:
+    def solve(
+        self, b, tol: float, max_iter: int, threads: bool = False
+    ) -> tuple[np.ndarray, int, int]:
         """Preconditioned CG on the host with the fine-level matrix and one cycle per
         iteration (:func:`host_cg`): ``(x, iterations, status)``.
 
@@ -807,11 +814,25 @@ class AMGSolver:
 
         Args:
             b: ``(n,)`` right-hand side; tol: absolute residual tolerance; max_iter: cap.
+            threads: split the products with the large level matrices by rows over the
+                CPU's cores (:func:`split_matvec`). For calls from Python only: inside an
+                XLA host callback XLA's own threads hold the cores.
         """
         if self._M is None or self._A is None:
             raise RuntimeError("call update(K) before solve(b, ...)")
-        A = self._A  # the current matrix (under refresh="none" not the hierarchy's)
-        return host_cg(lambda v: A @ v, b, self.precondition, tol, max_iter)
+        if not threads:
+            A = self._A  # the current matrix (under refresh="none" not the hierarchy's)
+            return host_cg(lambda v: A @ v, b, self.precondition, tol, max_iter)
+        if self._threaded is None:
+            self._threaded = (split_matvec(self._A), self._cycle_function(threads=True))
+        A_mv, cycle = self._threaded
+
+        def M(r):
+            r = np.ascontiguousarray(r, dtype=np.float64)
+            self._norms.append(float(np.sqrt(_dot(r, r))))  # (as precondition)
+            return cycle(r)
+
+        return host_cg(A_mv, b, M, tol, max_iter)
 
     def info(self) -> dict:
         """``levels``, ``operator_complexity``, ``rebuilt``, ``setup_time`` of the hierarchy
@@ -966,29 +987,101 @@ def _chebyshev_coefficients(a: float, b: float, degree: int) -> np.ndarray:
 
 
 def _chebyshev_apply(A, dinv: np.ndarray, coeffs: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """``q(D⁻¹A) D⁻¹ r`` by Horner's rule (``len(coeffs) − 1`` products with A)."""
+    """``q(D⁻¹A) D⁻¹ r`` by Horner's rule (``len(coeffs) − 1`` products ``A(v)``)."""
     y = dinv * r
     h = coeffs[0] * y
     for c in coeffs[1:]:
-        h = c * y + dinv * (A @ h)
+        h = c * y + dinv * A(h)
     return h
 
 
-def _cheb_v_cycle(levels, coarse_solver, cheb, lvl: int, b) -> np.ndarray:
+def _cheb_v_cycle(levels, coarse_solver, cheb, mvs, lvl: int, b) -> np.ndarray:
     """One V-cycle from a zero guess with the Chebyshev smoother (the same polynomial
-    before and after the coarse correction: a symmetric preconditioner)."""
+    before and after the coarse correction: a symmetric preconditioner); ``mvs[i]``:
+    ``v ↦ A_i v`` of level i."""
     level = levels[lvl]
-    A = level.A
+    A = mvs[lvl]
     dinv, coeffs = cheb[lvl]
     x = _chebyshev_apply(A, dinv, coeffs, b)
-    coarse_b = level.R @ (b - A @ x)
+    coarse_b = level.R @ (b - A(x))
     if lvl == len(levels) - 2:
         coarse_x = np.asarray(coarse_solver(levels[-1].A, coarse_b)).reshape(coarse_b.shape)
     else:
-        coarse_x = _cheb_v_cycle(levels, coarse_solver, cheb, lvl + 1, coarse_b)
+        coarse_x = _cheb_v_cycle(levels, coarse_solver, cheb, mvs, lvl + 1, coarse_b)
     x += level.P @ coarse_x
-    x += _chebyshev_apply(A, dinv, coeffs, b - A @ x)
+    x += _chebyshev_apply(A, dinv, coeffs, b - A(x))
     return x
+
+
+SPLIT_MIN_ENTRIES = 1 << 20
+""":func:`split_matvec` splits the products with matrices of at least this many stored
+entries (the finest level from about 40k dofs in 3D); below, a thread hand-off costs more
+than half a product saves."""
+
+
+def _cores() -> int:
+    """The CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+@functools.cache
+def _matvec_pool():
+    """The worker threads of :func:`split_matvec` (made on first use, one fewer than the
+    cores: the calling thread computes the first part)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(max_workers=max(1, _cores() - 1), thread_name_prefix="jaxelastic")
+
+
+def split_matvec(A):
+    """``v ↦ A v`` for a CSR or BSR matrix, split by (block) rows into as many parts of
+    about equal stored entries as there are cores, computed in threads.
+
+    SciPy's sparse products release the GIL, so the parts run in parallel: on the
+    81k-dof twist matrix (3.6M entries, 2 cores) 1.45 ms against 2.32 ms for one
+    product. Matrices below :data:`SPLIT_MIN_ENTRIES` entries, other formats and a
+    single core get the plain product.
+
+    Args:
+        A: ``scipy.sparse`` CSR or BSR ``(n, m)``.
+
+    Returns:
+        A function of ``v`` ``(m,)`` giving ``A v`` ``(n,)`` (float64 for float64 inputs).
+    """
+    parts = min(_cores(), 8)
+    if parts < 2 or A.nnz < SPLIT_MIN_ENTRIES or A.format not in ("csr", "bsr"):
+        return A.__matmul__
+    rows = A.blocksize[0] if A.format == "bsr" else 1
+    indptr = A.indptr
+    nb = indptr.size - 1
+    cuts = np.searchsorted(indptr, np.linspace(0, indptr[-1], parts + 1)[1:-1])
+    bounds = np.unique(np.concatenate([[0], np.clip(cuts, 0, nb), [nb]]))
+    pieces = []
+    for r0, r1 in zip(bounds[:-1], bounds[1:], strict=True):
+        s, e = indptr[r0], indptr[r1]
+        sub = type(A)(
+            (A.data[s:e], A.indices[s:e], indptr[r0 : r1 + 1] - s),
+            shape=(int(r1 - r0) * rows, A.shape[1]),
+        )
+        pieces.append((int(r0) * rows, int(r1) * rows, sub))
+    pool = _matvec_pool()
+    first, rest = pieces[0], pieces[1:]
+
+    def into(out, lo, hi, M, v):
+        out[lo:hi] = M @ v
+
+    def mv(v):
+        out = np.empty(A.shape[0], dtype=np.result_type(A.dtype, v.dtype))
+        futures = [pool.submit(into, out, lo, hi, M, v) for lo, hi, M in rest]
+        into(out, first[0], first[1], first[2], v)
+        for f in futures:
+            f.result()
+        return out
+
+    return mv
 
 
 def _v_cycle(levels, coarse_solver, lvl: int, x, b) -> None:

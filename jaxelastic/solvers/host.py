@@ -339,7 +339,7 @@ class HostLinearSolver:
             return self._apply(r), status
 
     def factor_cg_upper(
-        self, data, mass_diag, r, tol, max_iter, token=None
+        self, data, mass_diag, r, tol, max_iter, token=None, threads: bool = False
     ) -> tuple[np.ndarray, np.int32, np.int32]:
         """AMG only: :meth:`factor_upper`, then the whole preconditioned CG on the host
         (:meth:`~jaxelastic.solvers.backends.AMGSolver.solve`: the assembled matrix and one
@@ -354,6 +354,8 @@ class HostLinearSolver:
             r: ``(n_nodes, dim)`` right-hand side (zero on fixed dofs).
             tol: absolute residual tolerance (``‖r‖``, as the device CG); max_iter: cap.
             token: ignored; a data dependency that orders the callbacks.
+            threads: the CG's large matrix products split over the cores (for calls from
+                Python only, see :meth:`~jaxelastic.solvers.backends.AMGSolver.solve`).
 
         Returns:
             ``x`` shaped and typed like ``r`` (zero on fixed dofs), the iteration count
@@ -378,7 +380,7 @@ class HostLinearSolver:
             b = np.array(r_in, dtype=np.float64).reshape(-1)
             b[self.fixed] = 0.0
             t0 = time.perf_counter()
-            x, its, st = backend.solve(b, float(tol), int(max_iter))
+            x, its, st = backend.solve(b, float(tol), int(max_iter), threads=threads)
             self.applications += its
             self.last_info.update(cg_time=time.perf_counter() - t0, cg_iterations=its)
             x[self.fixed] = 0.0

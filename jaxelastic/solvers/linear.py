@@ -587,7 +587,7 @@ class AMG(_Host):
 
     def assembled_step(self, data, md, rhs, tol) -> tuple[np.ndarray, int, int]:
         backend = self._require()
-        dx, its, st = backend.factor_cg_upper(data, md, rhs, tol, self.max_iter)
+        dx, its, st = backend.factor_cg_upper(data, md, rhs, tol, self.max_iter, threads=True)
         return dx, int(its), int(st)
 
 
