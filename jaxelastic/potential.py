@@ -33,7 +33,17 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from .energy import Psi, assemble, check_psi, element_hessians, energy, forces, hvp
+from .energy import (
+    Psi,
+    assemble,
+    check_psi,
+    element_hessians,
+    energy,
+    forces,
+    hvp,
+    project_element_psd,
+    project_psd,
+)
 from .mesh import Mesh
 
 __all__ = [
@@ -322,6 +332,20 @@ def _local_blocks(hl, loc: Mesh, pts, Ke):
     B = _node_blocks(loc, Ke)
     n, d = B.shape[0], B.shape[1]
     return hl.scatter_add(B.reshape(n, d * d)).reshape(-1, d, d)
+
+
+def projected_element_hessians(pot: Potential, Ke: jax.Array) -> jax.Array:
+    """The PSD projection of element Hessians from :func:`elastic_element_hessians`:
+    :func:`~jaxelastic.energy.project_element_psd` (the translations taken out first,
+    exact) where elasticity alone contributes, :func:`~jaxelastic.energy.project_psd`
+    with a contact term (its per-node blocks are not translation-invariant).
+
+    Args:
+        Ke: ``(n_cells, k·dim, k·dim)``.
+    """
+    if pot.contact is None:
+        return project_element_psd(Ke, pot.mesh.dim)
+    return project_psd(Ke)
 
 
 def elastic_element_hessians(

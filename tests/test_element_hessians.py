@@ -248,3 +248,27 @@ def test_mesh_dtype_is_the_working_dtype():
     assert _hessians(M.neo_hookean, x64, mesh, p).dtype == jnp.float32
     hvp = jax.jit(je.hvp, static_argnums=0)
     assert hvp(M.neo_hookean, x64, x64, mesh, p).dtype == jnp.float32
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("kind", ["p1", "p2", "composite", "p2-fbar"])
+def test_projection_without_translations_equals_project_psd(dim, kind):
+    """``project=True`` projects through the (k−1)·d matrices with the translations taken
+    out (``project_element_psd``): equal to ``project_psd`` of the unprojected element
+    Hessians to round-off, on a state where most are indefinite; PSD, and the rigid
+    translations stay in the kernel."""
+    from jaxelastic.energy import project_element_psd, project_psd
+
+    mesh = _mesh(dim, kind)
+    x = _deformed(mesh, seed=2, scale=0.6)  # large enough that ψ's Hessian is indefinite
+    psi, p = M.neo_hookean, LAME
+    K = _hessians(psi, x, mesh, p)
+    ref = project_psd(K)
+    lam = np.linalg.eigvalsh(np.asarray(K))
+    assert (lam[:, 0] < -1e-8 * np.abs(lam).max()).mean() > 0.3  # mostly indefinite
+    for P in (_hessians(psi, x, mesh, p, project=True), project_element_psd(K, dim)):
+        assert _rel(P, ref) <= 1e-12
+        assert np.linalg.eigvalsh(np.asarray(P)).min() >= -1e-12 * np.abs(lam).max()
+        k = mesh.cells.shape[1]
+        t = np.tile(np.eye(dim), (k, 1))  # (k·d, d): the d translations, node-major
+        assert np.abs(np.asarray(P) @ t).max() <= 1e-12 * np.abs(lam).max()

@@ -34,8 +34,12 @@ from jax import lax
 from jax.core import Tracer
 
 from ..distributed import host_array
-from ..energy import project_psd
-from ..potential import Potential, mass_diagonal, node_hessian_blocks
+from ..potential import (
+    Potential,
+    mass_diagonal,
+    node_hessian_blocks,
+    projected_element_hessians,
+)
 from ..sharding import is_sharded
 from .backends import available_direct_backends
 from .blocks import block_inverse_or_diagonal
@@ -438,7 +442,8 @@ class _Host:
     def newton_step(self, system: NewtonSystem, rhs, tol) -> Solution:
         """Factorise the element Hessians on the host and solve; if the matrix is not
         positive definite (or the solve meets negative curvature), PSD-project the element
-        Hessians in JAX (:func:`~jaxelastic.energy.project_psd`) and solve again."""
+        Hessians in JAX (:func:`~jaxelastic.potential.projected_element_hessians`) and solve
+        again."""
         md = _masked_diag(system)
         zero = jnp.asarray(0, jnp.int32)
         dx, its, st = self._factor_and_solve(system, system.A, system.Ke, md, rhs, tol, zero)
@@ -446,7 +451,7 @@ class _Host:
         bad = bad | ~jnp.all(jnp.isfinite(dx))
 
         def retry(_):
-            Kp = project_psd(system.Ke)
+            Kp = projected_element_hessians(system.pot, system.Ke)
             A = system.operator(Kp)
             dx2, its2, st2 = self._factor_and_solve(system, A, Kp, md, rhs, tol, st)
             return dx2, its + its2, st2
@@ -736,7 +741,7 @@ class Multilevel:
     def newton_step(self, system: NewtonSystem, rhs, tol) -> Solution:
         """Multigrid-preconditioned CG to ``‖r‖ ≤ tol``; on negative curvature (or a failed
         coarsest factorisation) PSD-project the element Hessians
-        (:func:`~jaxelastic.energy.project_psd`) and solve again.
+        (:func:`~jaxelastic.potential.projected_element_hessians`) and solve again.
 
         Both attempts are one ``lax.while_loop`` body (at most two trips), so the cycle is
         compiled once, not once per branch of a ``cond``."""
@@ -747,7 +752,7 @@ class Multilevel:
 
         def attempt(c):
             k = c[0]
-            K = lax.cond(k == 0, lambda: Ke, lambda: project_psd(Ke))
+            K = lax.cond(k == 0, lambda: Ke, lambda: projected_element_hessians(system.pot, Ke))
             if exact_is_elementwise:  # system.A is the element-Hessian operator of Ke
                 A = system.operator(K)
             else:

@@ -49,7 +49,7 @@ from jax import lax
 
 from .. import potential as pot_mod
 from ..contact.barrier import kappa_update
-from ..energy import hvp, project_psd
+from ..energy import hvp, project_element_psd, project_psd
 from ..fusion import always, stored
 from ..kinematics import deformation_gradients, det
 from ..loads import Dirichlet
@@ -631,13 +631,15 @@ def _not_psd(Ke, start, size: int):
     return ~jnp.all(jnp.isfinite(L), axis=(1, 2))
 
 
-@functools.partial(jax.jit, static_argnames="nnz_upper", donate_argnums=0)
-def _add_projection(acc, Ke, element_map, idx, valid, nnz_upper: int):
-    """``acc`` plus the upper data of ``project_psd(K) − K`` over the cells ``idx``
-    (``valid``: 0 on the padding)."""
+@functools.partial(jax.jit, static_argnames=("nnz_upper", "dim"), donate_argnums=0)
+def _add_projection(acc, Ke, element_map, idx, valid, nnz_upper: int, dim: int):
+    """``acc`` plus the upper data of ``project(K) − K`` over the cells ``idx``
+    (``valid``: 0 on the padding); ``dim``: element Hessians of elasticity alone
+    (:func:`~jaxelastic.energy.project_element_psd`), 0: any (``project_psd``)."""
     u = element_map.shape[0] // Ke.shape[0]
     K = Ke[idx]
-    D = (project_psd(K) - K) * valid[:, None, None]
+    P = project_element_psd(K, dim) if dim else project_psd(K)
+    D = (P - K) * valid[:, None, None]
     return acc + assemble_upper(D, element_map.reshape(-1, u)[idx].reshape(-1), nnz_upper)
 
 
@@ -652,11 +654,13 @@ loop: a ``lax`` loop around the batched LAPACK eigensolver deadlocked XLA:CPU at
 (jaxlib 0.10), and no copy of all cells' Hessians is made."""
 
 
-def _projected_upper(data, Ke, element_map, nnz_upper: int):
+def _projected_upper(data, Ke, element_map, nnz_upper: int, dim: int):
     """The upper data of the PSD-projected element Hessians from ``data``, that of the
     unprojected ones: only the cells whose Hessian is not positive semidefinite
-    (:func:`_not_psd`) are projected (``eigh``, about 10 µs per 12×12 matrix: 7 s for all
-    511k tets of the twist at n = 44) and their change added."""
+    (:func:`_not_psd`) are projected and their change added. ``dim``: the element
+    Hessians are elasticity's alone, projected through the 9×9 matrices without the
+    translations (:func:`~jaxelastic.energy.project_element_psd`; twist n = 44, where 507k
+    of 511k tets fail the test: 8.0 s with 12×12 ``eigh``); 0: ``project_psd``."""
     c = Ke.shape[0]
     bad = np.concatenate(
         [
@@ -672,7 +676,7 @@ def _projected_upper(data, Ke, element_map, nnz_upper: int):
         valid[: part.size] = 1.0
         padded = np.zeros(size, np.int32)
         padded[: part.size] = part
-        data = _add_projection(data, Ke, element_map, padded, valid, nnz_upper)
+        data = _add_projection(data, Ke, element_map, padded, valid, nnz_upper, dim)
     return data
 
 
@@ -695,7 +699,8 @@ def _host_assembled_step(s: Newton, pot: Potential, bc: Dirichlet, Ke, rhs, tol)
     dx, its, st = s.linear.assembled_step(data, md, rhs, tol)
     bad = _bad_step(dx, st)
     if bad:
-        data = _projected_upper(data, Ke, host.element_map, nnz)
+        dim = pot.mesh.dim if pot.contact is None else 0  # (contact blocks: any matrix)
+        data = _projected_upper(data, Ke, host.element_map, nnz, dim)
         dx, its2, st = s.linear.assembled_step(data, md, rhs, tol)
         its += its2
     if st == Status.NOT_POSITIVE_DEFINITE:
