@@ -214,5 +214,9 @@ def test_projected_upper_by_blocks(beam, monkeypatch):
     assert 0 < bad.sum() < mesh.n_cells  # both kinds of cells in this start
     assert np.all(lam_min[~bad] >= -1e-10 * scale[~bad]) and np.all(lam_min[bad] < 0)
     data = assemble_upper(Ke, emap, host.nnz_upper)
-    got = N._projected_upper(data, Ke, host.element_map, host.nnz_upper)
+    got = N._projected_upper(data, Ke, host.element_map, host.nnz_upper, 0)
+    # elasticity alone: through the matrices without translations, the same to round-off
+    data = assemble_upper(Ke, emap, host.nnz_upper)  # (the first call donated it)
+    got_dim = N._projected_upper(data, Ke, host.element_map, host.nnz_upper, mesh.dim)
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * float(jnp.abs(ref).max()))
+    np.testing.assert_allclose(got_dim, ref, rtol=0, atol=1e-9 * float(jnp.abs(ref).max()))
