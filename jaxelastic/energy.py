@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
-from .fusion import always, stored
+from .fusion import always, computed
 from .kinematics import b_bar, cofactor, deformation_gradients, det, displacements, f_bar
 from .mesh.elements import get_element
 
@@ -633,7 +633,7 @@ def _contract_hessians(Ch, dN, G: np.ndarray, pred):
         G: ``(q, k, d)`` the element's reference gradients at its quadrature points
             (``Element.shape_gradients()``), of which ``dN`` is the push-forward.
         pred: :func:`~jaxelastic.fusion.always` of the mesh (for
-            :func:`~jaxelastic.fusion.stored`).
+            :func:`~jaxelastic.fusion.computed`).
 
     Returns:
         ``(c, k, d, k, d)`` element Hessians (node-major dofs).
@@ -647,7 +647,6 @@ def _contract_hessians(Ch, dN, G: np.ndarray, pred):
     _, q, k, d = dN.shape
     if q > 1:
         return _contract_hessians_pulled_back(Ch, dN, G, pred)
-    Ch = stored(Ch, pred)
     N = dN[:, 0]  # (c, k, d)
     out = None
     for b in range(d):
@@ -705,12 +704,12 @@ def _contract_hessians_pulled_back(Ch, dN, G: np.ndarray, pred):
         ``(c, k, d, k, d)`` element Hessians.
     """
     c, q, k, d = dN.shape
-    Ch = stored(Ch, pred)
     pinv = jnp.asarray(np.stack([np.linalg.pinv(G[i]) for i in range(q)]), dN.dtype)
-    Ji = _sum_terms(  # J⁻¹ (c, q, β, b) from dN = G J⁻¹
-        pinv[None, :, :, n, None] * dN[:, :, None, n, :] for n in range(k)
+    Ji = computed(  # J⁻¹ (c, q, β, b) from dN = G J⁻¹
+        lambda dN: _sum_terms(pinv[None, :, :, n, None] * dN[:, :, None, n, :] for n in range(k)),
+        pred,
+        dN,
     )
-    Ji = stored(Ji, pred)
     T = _sum_terms(  # (c, q, a, β, x, e)
         Ji[:, :, None, :, None, None, b] * Ch[:, :, :, None, b, :, :] for b in range(d)
     )
@@ -815,7 +814,7 @@ def _fbar_hessian_terms(psi, F, w, p, form: str, pred):
         F: ``(q, d, d)`` compatible deformation gradients; w: ``(q,)`` weights; p: params.
         form: ``"fbar"`` or ``"bbar"``.
         pred: :func:`~jaxelastic.fusion.always` (stores C and y once, see
-            :func:`~jaxelastic.fusion.stored`).
+            :func:`~jaxelastic.fusion.computed`).
 
     Returns:
         ``(Ĉ, Gq, Zq, κ)``: Ĉ ``(q, d, d, d, d)``; Gq, Zq ``(q, d, d)`` with
@@ -827,9 +826,9 @@ def _fbar_hessian_terms(psi, F, w, p, form: str, pred):
     omega = w / jnp.where(jnp.sum(w) > 0, jnp.sum(w), 1.0)  # Σw = 0: a padded cell
     if form == "bbar":
         Fb = b_bar(F, w)
-        C = stored(H(Fb, p), pred)  # (q, d, d, d, d)
+        C = computed(H, pred, Fb, p)  # (q, d, d, d, d)
         I = jnp.broadcast_to(eye, F.shape)
-        y = stored(w[:, None, None] * _ddot(C, I), pred)
+        y = computed(lambda C: w[:, None, None] * _ddot(C, I), pred, C)
         gam = jnp.trace(y, axis1=-2, axis2=-1)
         Ch = (
             w[:, None, None, None, None] * C
@@ -848,11 +847,17 @@ def _fbar_hessian_terms(psi, F, w, p, form: str, pred):
     ratio = jnp.where(ok, Jbar_s / jnp.where(ok, J, 1.0), 1.0)
     theta = ratio ** (1.0 / d)
     Fb = theta[:, None, None] * F
-    P = jax.vmap(jax.grad(psi, argnums=0), in_axes=(0, None))(Fb, p)
-    P, C = stored((P, H(Fb, p)), pred)
+    dpsi = jax.vmap(jax.grad(psi, argnums=0), in_axes=(0, None))
+    P, C = computed(lambda Fb, p: (dpsi(Fb, p), H(Fb, p)), pred, Fb, p)
     Fi = cof / jnp.where(ok, J, 1.0)[:, None, None]  # F⁻ᵀ where ok (else unused)
     wt = w * theta
-    y = stored((wt * theta)[:, None, None] * _ddot(C, F) + wt[:, None, None] * P, pred)
+    y = computed(
+        lambda C, F, P: (wt * theta)[:, None, None] * _ddot(C, F) + wt[:, None, None] * P,
+        pred,
+        C,
+        F,
+        P,
+    )
     gam = jnp.sum(y * F, axis=(-2, -1))
     alpha = jnp.sum(P * F, axis=(-2, -1))
     A = jnp.sum(o * wt * alpha)
@@ -927,11 +932,11 @@ def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = Fa
         )
         n = ue_b.shape[0]
         pred = always(cells_b)  # outside the per-cell vmap: the conditionals stay
-        terms = _element_hessian_terms(psi, form, pred)
-        Ch, g, z, kappa = _per_cell(terms, p, n)(ue_b, dN_b, w_b, p)
+        terms = _per_cell(_element_hessian_terms(psi, form, pred), p, n)
+        # Ĉ (and the F-bar vectors) computed once, stored, then contracted (fusion.computed)
+        Ch, g, z, kappa = computed(terms, pred, ue_b, dN_b, w_b, p)
         K = _contract_hessians(Ch, dN_b, G, pred)  # (n, k, d, k, d)
         if g is not None:
-            g, z, kappa = stored((g, z, kappa), pred)
             gz = g[:, :, :, None, None] * z[:, None, None, :, :]
             gg = g[:, :, :, None, None] * g[:, None, None, :, :]
             K = K + gz + jnp.transpose(gz, (0, 3, 4, 1, 2)) + kappa[:, None, None, None, None] * gg

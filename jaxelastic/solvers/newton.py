@@ -50,7 +50,7 @@ from jax import lax
 from .. import potential as pot_mod
 from ..contact.barrier import kappa_update
 from ..energy import hvp, project_element_psd, project_psd
-from ..fusion import always, stored
+from ..fusion import always, computed
 from ..kinematics import deformation_gradients, det
 from ..loads import Dirichlet
 from ..potential import Potential
@@ -155,12 +155,16 @@ def _energy_scale(pot: Potential, x, Ke):
         xKx = jnp.abs(jnp.sum(x * hvp(pot.psi, x, x, pot.mesh, pot.params)))
     else:
         xe = x[pot.mesh.cells].reshape(pot.mesh.n_cells, -1)  # (n_cells, m)
-        # K_c x_c in one loop over the columns, stored (see _residual_floor), then the sum:
-        # the batched-matvec einsum took 0.030 s at 146k tets
-        Kx = Ke[:, :, 0] * xe[:, 0:1]
-        for j in range(1, xe.shape[1]):
-            Kx = Kx + Ke[:, :, j] * xe[:, j : j + 1]
-        Kx = stored(Kx, always(pot.mesh.cells))
+
+        def products(Ke, xe):  # K_c x_c in one loop over the columns
+            Kx = Ke[:, :, 0] * xe[:, 0:1]
+            for j in range(1, xe.shape[1]):
+                Kx = Kx + Ke[:, :, j] * xe[:, j : j + 1]
+            return Kx
+
+        # stored before the sum (see _residual_floor): the batched-matvec einsum took
+        # 0.030 s at 146k tets
+        Kx = computed(products, always(pot.mesh.cells), Ke, xe)
         xKx = jnp.sum(jnp.abs(jnp.sum(Kx * xe, axis=1)))
     if pot.f_ext is not None:
         xKx = xKx + jnp.abs(jnp.sum(pot.f_ext * x))
@@ -468,17 +472,19 @@ def _residual_floor(pot: Potential, system: NewtonSystem, x, fm):
     if system.Ke is not None:
         mesh = pot.mesh
         xe2 = (x[mesh.cells].reshape(mesh.n_cells, -1)) ** 2  # (n_cells, m)
-        Ke = system.Ke
-        # v_i = Σ_j K_ij² x_j², one fused loop per column: the einsum of Ke**2 stored the
-        # squares and ran a batched matvec, 4.6× the CPU time at 146k tets
-        v = Ke[:, :, 0] ** 2 * xe2[:, 0:1]  # (n_cells, m)
-        for j in range(1, xe2.shape[1]):
-            v = v + Ke[:, :, j] ** 2 * xe2[:, j : j + 1]
+
+        def squares(Ke, xe2):  # v_i = Σ_j K_ij² x_j², one fused loop per column: the
+            # einsum of Ke**2 stored the squares and ran a batched matvec, 4.6× the time
+            v = Ke[:, :, 0] ** 2 * xe2[:, 0:1]  # (n_cells, m)
+            for j in range(1, xe2.shape[1]):
+                v = v + Ke[:, :, j] ** 2 * xe2[:, j : j + 1]
+            return v
+
         # Σ over free dofs of the assembled v is Σ over cells of v masked by the cells'
         # free dofs, no assembly; v stored first (fused into its consumer, the node gathers
         # of an assembly or a reduction, it cost 0.067 / 0.16 s per Newton step at 146k
         # tets, against 0.012 s)
-        v = stored(v, always(mesh.cells))
+        v = computed(squares, always(mesh.cells), system.Ke, xe2)
         total = jnp.sum(v * fm[mesh.cells].reshape(mesh.n_cells, -1))
     if pot.f_ext is not None:
         sq = sq + pot.f_ext**2
