@@ -220,3 +220,8 @@ def test_projected_upper_by_blocks(beam, monkeypatch):
     got_dim = N._projected_upper(data, Ke, host.element_map, host.nnz_upper, mesh.dim)
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * float(jnp.abs(ref).max()))
     np.testing.assert_allclose(got_dim, ref, rtol=0, atol=1e-9 * float(jnp.abs(ref).max()))
+    # most of the first block failing: every cell projected, untested; the same result
+    monkeypatch.setattr(N, "PROJECT_ALL_FRACTION", -1.0)
+    data = assemble_upper(Ke, emap, host.nnz_upper)
+    got_all = N._projected_upper(data, Ke, host.element_map, host.nnz_upper, mesh.dim)
+    np.testing.assert_allclose(got_all, ref, rtol=0, atol=1e-9 * float(jnp.abs(ref).max()))
