@@ -51,7 +51,15 @@ def computed(fn: Callable[..., Any], pred: jax.Array, *args) -> Any:
     """
 
     def nan(*a):
-        shapes = jax.eval_shape(fn, *a)
-        return jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), shapes)
+        return jax.tree_util.tree_map(_nan_like, jax.eval_shape(fn, *a))
 
     return jax.lax.cond(pred, fn, nan, *args)
+
+
+def _nan_like(s: jax.ShapeDtypeStruct) -> jax.Array:
+    """NaN of ``s``'s shape and dtype, varying over the same manual mesh axes as the
+    value it stands for (inside ``shard_map`` the branches of a conditional must agree)."""
+    out = jnp.full(s.shape, jnp.nan, s.dtype)
+    axis_type = getattr(s, "manual_axis_type", None)
+    varying = tuple(sorted(getattr(axis_type, "varying", ()) or ()))
+    return jax.lax.pcast(out, varying, to="varying") if varying else out

@@ -117,6 +117,7 @@ def test_fit_command_recovers_E_nu_and_reruns_from_files(tmp_path, capsys):
     assert rc == 2 and "refusing to overwrite" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # (10 s; test_fit_command_recovers_E_nu_and_reruns_from_files runs the command)
 def test_fit_command_two_regions(tmp_path, capsys):
     # a piecewise-constant field: left and right halves, all four values recovered
     lines = (

@@ -57,6 +57,7 @@ def test_matches_direct_2d(beam):
     np.testing.assert_allclose(res.x, ref.x, rtol=0, atol=1e-10)
 
 
+@pytest.mark.slow  # (15 s; the 2D comparison runs by default)
 def test_matches_direct_3d_twist():
     b = benchmarks.twist(4)
     newton = je.Newton(**TIGHT)
