@@ -149,6 +149,17 @@ def _value_and_grad(s: Newton, pot: Potential, x):
     return jnp.where(jnp.isnan(v), jnp.inf, v), pot_mod.gradient(pot, x)
 
 
+def _computed_once(fn, mesh, *args):
+    """``fn(*args)`` stored once (:func:`~jaxelastic.fusion.computed`) for a mesh on one
+    device; for a sharded mesh (``mesh.halo``) plainly: there the predicate and the
+    branch's gathers are collectives, and collectives inside a conditional made the two
+    processes of a multi-process solve issue them in different orders (Gloo: "collective
+    mismatch", 2 of 3 runs of the two-process twist)."""
+    if getattr(mesh, "halo", None) is not None:
+        return fn(*args)
+    return computed(fn, always(mesh.cells), *args)
+
+
 def _energy_scale(pot: Potential, x, Ke):
     """Σ_c |x_cᵀK_c x_c| + |f_extᵀx|: the round-off scale of Π (translation invariant)."""
     if Ke is None:
@@ -164,7 +175,7 @@ def _energy_scale(pot: Potential, x, Ke):
 
         # stored before the sum (see _residual_floor): the batched-matvec einsum took
         # 0.030 s at 146k tets
-        Kx = computed(products, always(pot.mesh.cells), Ke, xe)
+        Kx = _computed_once(products, pot.mesh, Ke, xe)
         xKx = jnp.sum(jnp.abs(jnp.sum(Kx * xe, axis=1)))
     if pot.f_ext is not None:
         xKx = xKx + jnp.abs(jnp.sum(pot.f_ext * x))
@@ -484,7 +495,7 @@ def _residual_floor(pot: Potential, system: NewtonSystem, x, fm):
         # free dofs, no assembly; v stored first (fused into its consumer, the node gathers
         # of an assembly or a reduction, it cost 0.067 / 0.16 s per Newton step at 146k
         # tets, against 0.012 s)
-        v = computed(squares, always(mesh.cells), system.Ke, xe2)
+        v = _computed_once(squares, mesh, system.Ke, xe2)
         total = jnp.sum(v * fm[mesh.cells].reshape(mesh.n_cells, -1))
     if pot.f_ext is not None:
         sq = sq + pot.f_ext**2
