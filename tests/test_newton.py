@@ -497,6 +497,20 @@ for lin in ("cg", "direct"):
 # --------------------------------------------------------------------------------------
 
 
+def _turned_square(rect):
+    """``(pot, bc, bound Newton)``: a neo-Hookean square whose right edge is turned by
+    1 rad about its midpoint (too large a Dirichlet motion for one step: cutbacks)."""
+
+    def turn(X, theta=1.0):
+        y = X[:, 1] - 0.5
+        return np.stack([-np.sin(theta) * y, (np.cos(theta) - 1.0) * y], axis=1)
+
+    left = L.fix(rect, L.nodes_on_plane(rect, 0, 0.0))
+    bc = L.combine(left, L.fix(rect, L.nodes_on_plane(rect, 0, 1.0), displacement=turn))
+    pot = je.Potential(mesh=rect, params=PARAMS, psi=M.neo_hookean)
+    return pot, bc, je.solvers.bind_solver(Newton(rtol=1e-10, linear="direct"), rect, bc)
+
+
 def test_jitted_and_host_newton_drivers_take_the_same_iterates(rect):
     """``Newton.minimize`` (``_run``: the loop under ``lax.while_loop``, what ``solve`` runs
     under jit and for device linear solvers) and ``newton.host_minimize`` (the loop in
@@ -507,14 +521,7 @@ def test_jitted_and_host_newton_drivers_take_the_same_iterates(rect):
     residual, step length and linear iterations, and the same answer and statistics."""
     from jaxelastic.solvers import newton as N
 
-    def turn(X, theta=1.0):
-        y = X[:, 1] - 0.5
-        return np.stack([-np.sin(theta) * y, (np.cos(theta) - 1.0) * y], axis=1)
-
-    left = L.fix(rect, L.nodes_on_plane(rect, 0, 0.0))
-    bc = L.combine(left, L.fix(rect, L.nodes_on_plane(rect, 0, 1.0), displacement=turn))
-    pot = je.Potential(mesh=rect, params=PARAMS, psi=M.neo_hookean)
-    s = je.solvers.bind_solver(Newton(rtol=1e-10, linear="direct"), rect, bc)
+    pot, bc, s = _turned_square(rect)
     x0 = rect.points
 
     # iterate by iterate: the while_loop's body (jitted) vs the host pieces
@@ -568,14 +575,7 @@ def test_first_line_search_trial_outside_the_loop_changes_nothing(rect, monkeypa
     shares ``_line_search`` with the jitted one, see the test above)."""
     from jaxelastic.solvers import newton as N
 
-    def turn(X, theta=1.0):
-        y = X[:, 1] - 0.5
-        return np.stack([-np.sin(theta) * y, (np.cos(theta) - 1.0) * y], axis=1)
-
-    left = L.fix(rect, L.nodes_on_plane(rect, 0, 0.0))
-    bc = L.combine(left, L.fix(rect, L.nodes_on_plane(rect, 0, 1.0), displacement=turn))
-    pot = je.Potential(mesh=rect, params=PARAMS, psi=M.neo_hookean)
-    s = je.solvers.bind_solver(Newton(rtol=1e-10, linear="direct"), rect, bc)
+    pot, bc, s = _turned_square(rect)
     out = []
     for threshold in (0, 1 << 62):  # outside the loop, then inside
         monkeypatch.setattr(N, "STRAIGHT_TRIAL_MIN_CELLS", threshold)
