@@ -54,6 +54,8 @@ __all__ = [
     "node_hessian_blocks",
     "element_hessian_vp",
     "elastic_element_hessians",
+    "projected_element_hessians",
+    "projection_dim",
     "mass_diagonal",
     "check_potential",
 ]
@@ -334,18 +336,25 @@ def _local_blocks(hl, loc: Mesh, pts, Ke):
     return hl.scatter_add(B.reshape(n, d * d)).reshape(-1, d, d)
 
 
+def projection_dim(pot: Potential) -> int:
+    """The ``dim`` for :func:`~jaxelastic.energy.project_element_psd` of this potential's
+    element Hessians (:func:`elastic_element_hessians`): the mesh's dimension where
+    elasticity alone contributes (the rigid translations are in every Hessian's kernel),
+    0 with a contact term (its per-node blocks are not translation-invariant:
+    :func:`~jaxelastic.energy.project_psd`)."""
+    return pot.mesh.dim if pot.contact is None else 0
+
+
 def projected_element_hessians(pot: Potential, Ke: jax.Array) -> jax.Array:
     """The PSD projection of element Hessians from :func:`elastic_element_hessians`:
     :func:`~jaxelastic.energy.project_element_psd` (the translations taken out first,
-    exact) where elasticity alone contributes, :func:`~jaxelastic.energy.project_psd`
-    with a contact term (its per-node blocks are not translation-invariant).
+    exact) or :func:`~jaxelastic.energy.project_psd`, as :func:`projection_dim` says.
 
     Args:
         Ke: ``(n_cells, k·dim, k·dim)``.
     """
-    if pot.contact is None:
-        return project_element_psd(Ke, pot.mesh.dim)
-    return project_psd(Ke)
+    dim = projection_dim(pot)
+    return project_element_psd(Ke, dim) if dim else project_psd(Ke)
 
 
 def elastic_element_hessians(

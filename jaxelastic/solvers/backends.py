@@ -795,9 +795,7 @@ class AMGSolver:
         if r.ndim == 2 and r.shape[1] == 1:  # one right-hand side: a CG iteration
             return self.precondition(r[:, 0])[:, None]
         if r.ndim == 1:
-            r = np.ascontiguousarray(r)
-            self._norms.append(float(np.sqrt(_dot(r, r))))
-            return np.asarray(self._M(r), dtype=np.float64).reshape(r.shape)
+            return self._recorded_cycle(self._M, r)
         return np.stack([self._M(np.ascontiguousarray(c)) for c in r.T], axis=1)
 
     def solve(
@@ -826,13 +824,14 @@ class AMGSolver:
         if self._threaded is None:
             self._threaded = (split_matvec(self._A), self._cycle_function(threads=True))
         A_mv, cycle = self._threaded
+        return host_cg(A_mv, b, lambda r: self._recorded_cycle(cycle, r), tol, max_iter)
 
-        def M(r):
-            r = np.ascontiguousarray(r, dtype=np.float64)
-            self._norms.append(float(np.sqrt(_dot(r, r))))  # (as precondition)
-            return cycle(r)
-
-        return host_cg(A_mv, b, M, tol, max_iter)
+    def _recorded_cycle(self, cycle, r) -> np.ndarray:
+        """``cycle(r)`` of one ``(n,)`` residual, its norm recorded for the CG's measured
+        convergence rate (:func:`_convergence_factor`)."""
+        r = np.ascontiguousarray(r, dtype=np.float64)
+        self._norms.append(float(np.sqrt(_dot(r, r))))
+        return np.asarray(cycle(r), dtype=np.float64).reshape(r.shape)
 
     def info(self) -> dict:
         """``levels``, ``operator_complexity``, ``rebuilt``, ``setup_time`` of the hierarchy

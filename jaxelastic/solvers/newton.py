@@ -329,11 +329,12 @@ def _line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near, floor):
 
 STRAIGHT_TRIAL_MIN_CELLS = 50_000
 """Meshes of at least this many cells run the line search's first trial (α = 1) outside
-its while loop, which then only cuts back: XLA:CPU ran Π's gradient 1.6–3.9× slower
-inside a while loop's body than outside (its node gathers; twist n = 29: 0.058 against
-0.016 s per Newton step). Smaller meshes keep the single trial inside the loop: compiling
-Π and its gradient twice cost 0.6 s of the default scene's 10 s cold command (1,080 tets,
-measured), more than the loop costs it."""
+its while loop, which then only cuts back: XLA:CPU ran the solver's Π and ∇Π 1.6–3.9×
+slower inside a while loop's body than outside (twist n = 29: 0.058 against 0.016 s per
+Newton step; ``jax.grad`` of ``je.energy``, the HVP and the element Hessians showed no
+such penalty, so it is not a property of every loop). Smaller meshes keep the single
+trial inside the loop: compiling Π and its gradient twice cost 0.6 s of the default
+scene's 10 s cold command (1,080 tets, measured), more than the loop costs it."""
 
 
 def _with_kappa(pot: Potential, c: dict) -> Potential:
@@ -651,8 +652,8 @@ def _not_psd(Ke, start, size: int):
 @functools.partial(jax.jit, static_argnames=("nnz_upper", "dim"), donate_argnums=0)
 def _add_projection(acc, Ke, element_map, idx, valid, nnz_upper: int, dim: int):
     """``acc`` plus the upper data of ``project(K) − K`` over the cells ``idx``
-    (``valid``: 0 on the padding); ``dim``: element Hessians of elasticity alone
-    (:func:`~jaxelastic.energy.project_element_psd`), 0: any (``project_psd``)."""
+    (``valid``: 0 on the padding); ``dim``: :func:`~jaxelastic.potential.projection_dim`
+    (:func:`~jaxelastic.energy.project_element_psd`; 0: ``project_psd``)."""
     u = element_map.shape[0] // Ke.shape[0]
     K = Ke[idx]
     P = project_element_psd(K, dim) if dim else project_psd(K)
@@ -722,7 +723,7 @@ def _host_assembled_step(s: Newton, pot: Potential, bc: Dirichlet, Ke, rhs, tol)
     dx, its, st = s.linear.assembled_step(data, md, rhs, tol)
     bad = _bad_step(dx, st)
     if bad:
-        dim = pot.mesh.dim if pot.contact is None else 0  # (contact blocks: any matrix)
+        dim = pot_mod.projection_dim(pot)
         data = _projected_upper(data, Ke, host.element_map, nnz, dim)
         dx, its2, st = s.linear.assembled_step(data, md, rhs, tol)
         its += its2
