@@ -23,6 +23,7 @@ selects F-bar/B-bar in the energy kernels; see :mod:`jaxelastic.mesh.elements` a
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import warnings
 from typing import Any
 
@@ -175,8 +176,8 @@ def from_arrays(
     _check_topology(pts, cls)
     cls = cls.astype(np.int32)
     cls, Jac, detJ = _check_geometry(pts, cls, el, orient)
-    gref = el.shape_gradients()  # (q, k, d)
-    dN = np.einsum("qkb,cqba->cqka", gref, np.linalg.inv(Jac))  # (c, q, k, d)
+    gref = np.asarray(el.shape_gradients(), dtype=np.float64)  # (q, k, d)
+    dN = np.matmul(gref[None], np.linalg.inv(Jac))  # (c, q, k, d) = ∇̂N J⁻¹
     w = detJ * np.asarray(el.quad_weights)[None, :]  # (c, q)
     return Mesh(
         points=jnp.asarray(pts, dtype=dtype),
@@ -288,9 +289,9 @@ def _check_topology(pts: np.ndarray, cls: np.ndarray) -> None:
 
 def _rest_jacobians(points: np.ndarray, cells: np.ndarray, element: Element) -> np.ndarray:
     """``(n_cells, n_q, dim, dim)`` rest Jacobians ``∂X/∂ξ`` (equal to Dm for P1)."""
-    gref = element.shape_gradients()  # (q, k, d)
+    gref = np.asarray(element.shape_gradients(), dtype=np.float64)  # (q, k, d)
     xe = points[cells]  # (c, k, d)
-    return np.einsum("cka,qkb->cqab", xe, gref)
+    return np.matmul(xe.swapaxes(1, 2)[:, None], gref[None])  # (BLAS; einsum was 2x slower)
 
 
 def _check_geometry(pts: np.ndarray, cls: np.ndarray, el: Element, orient: str):
@@ -302,10 +303,12 @@ def _check_geometry(pts: np.ndarray, cls: np.ndarray, el: Element, orient: str):
     dim = pts.shape[1]
     Jac = _rest_jacobians(pts, cls, el)  # (c, q, d, d)
     detJ = np.linalg.det(Jac)  # (c, q)
-    # scale-aware degeneracy test: measure relative to (longest edge)^dim
-    xe = pts[cls]
-    edges = xe[:, :, None, :] - xe[:, None, :, :]
-    h = np.sqrt((edges**2).sum(-1).max(axis=(1, 2)))
+    # scale-aware degeneracy test: measure relative to (longest vertex-to-vertex edge)^dim
+    h2 = np.zeros(cls.shape[0])
+    for a, b in itertools.combinations(range(dim + 1), 2):  # the simplex's vertices
+        e = pts[cls[:, a]] - pts[cls[:, b]]
+        np.maximum(h2, np.einsum("cd,cd->c", e, e), out=h2)
+    h = np.sqrt(h2)
     rel = detJ / np.maximum(h, np.finfo(float).tiny)[:, None] ** dim
     degenerate = (np.abs(rel) < 1e-12).any(axis=1)
     if degenerate.any():
