@@ -500,6 +500,32 @@ def test_amg_chebyshev_smoother():
         AMGSolver(mesh.points, fixed, smoother="sor")
 
 
+def test_amg_warm_lanczos_estimate_and_rebuilt_sizes():
+    """A refresh re-estimates λ_max(D⁻¹A) by LANCZOS_WARM_STEPS steps from the previous
+    Ritz vector, within 2 % below the dense eigenvalue; a rebuilt hierarchy whose coarse
+    sizes differ from the stored Ritz vectors starts those levels cold instead of failing."""
+    from jaxelastic.solvers.backends import LANCZOS_WARM_STEPS, _lanczos_max
+
+    mesh, fixed, Ke, md, rhs = _problem("twist")
+    host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
+    s = host.backend
+    assert host.factor(Ke, md, TOKEN) == SUCCESS
+    K2 = host.assemble(1.3 * Ke, md)
+    A = s._amg_matrix(K2)
+    d = A.diagonal()
+    lam_true = np.max(np.linalg.eigvalsh((A.toarray() / np.sqrt(d)[:, None]) / np.sqrt(d)))
+    lam, _ = _lanczos_max(A, 1.0 / np.sqrt(d), s._ritz[0], LANCZOS_WARM_STEPS)
+    assert 0.98 * lam_true <= lam <= (1.0 + 1e-12) * lam_true, (lam, lam_true)
+    s._ritz = [s._ritz[0]] + [v[:-3] for v in s._ritz[1:]]  # as if the sizes had changed
+    s.reuse = 1  # the next update rebuilds
+    assert host.factor(1.3 * Ke, md, TOKEN) == SUCCESS and s.rebuilt
+    assert [v.size for v in s._ritz] == [lv.A.shape[0] for lv in s.ml.levels[:-1]]
+    b = rhs.reshape(-1).copy()
+    b[fixed] = 0.0
+    x, its, status = s.solve(b, 1e-8 * np.linalg.norm(b), 200)
+    assert status == 0 and its < 60
+
+
 def test_host_cg_matches_device_cg():
     """The host PCG of the AMG back end (one callback per Newton step) takes the device
     CG's iterations on the same matrix and preconditioner: same iterate to round-off, same
