@@ -791,7 +791,8 @@ class AMGSolver:
         """``(D⁻¹, coefficients)`` of the Chebyshev smoother of every level but the
         coarsest, for the current level matrices: ``λ_max(D⁻¹A)`` by
         :data:`LANCZOS_STEPS` Lanczos steps (:data:`LANCZOS_WARM_STEPS` from the
-        previous Ritz vector of the level, if any), the polynomial on ``[λ/30, 1.1 λ]`` (PyAMG's interval)."""
+        previous Ritz vector of the level, if any), the polynomial on ``[λ/30, 1.1 λ]``
+        (PyAMG's interval)."""
         ml = self.ml
         assert ml is not None
         known = len(self._ritz) == len(ml.levels) - 1
