@@ -502,8 +502,8 @@ def test_amg_chebyshev_smoother():
 
 def test_amg_warm_lanczos_estimate_and_rebuilt_sizes():
     """A refresh re-estimates λ_max(D⁻¹A) by LANCZOS_WARM_STEPS steps from the previous
-    Ritz vector, within 2 % below the dense eigenvalue; a rebuilt hierarchy whose coarse
-    sizes differ from the stored Ritz vectors starts those levels cold instead of failing."""
+    Ritz vector, within 2 % below the dense eigenvalue; a rebuild starts the coarse levels
+    cold (their stored Ritz vectors, here of other sizes, belong to the old bases)."""
     from jaxelastic.solvers.backends import LANCZOS_WARM_STEPS, _lanczos_max
 
     mesh, fixed, Ke, md, rhs = _problem("twist")

@@ -719,6 +719,7 @@ class AMGSolver:
             self.ml = pyamg.smoothed_aggregation_solver(A, B=self.B, **self.sa_options)
             self._updates_since_build = 1
             self._rate_ref = None
+            self._ritz = self._ritz[:1]  # the coarse bases are new: their estimates start cold
             self.rebuilt = True
         else:
             if self.refresh == "galerkin" or (self.refresh == "fine" and self._degraded(True)):
@@ -795,18 +796,16 @@ class AMGSolver:
         (PyAMG's interval)."""
         ml = self.ml
         assert ml is not None
-        known = len(self._ritz) == len(ml.levels) - 1
         cheb, ritz = [], []
         for i, level in enumerate(ml.levels[:-1]):
             A = level.A
-            if known and self._cheb_of[i] is A:  # unchanged (refresh="fine": the coarse
+            warm = i < len(self._ritz)  # a Ritz vector of this level's basis (update)
+            if warm and self._cheb_of[i] is A:  # unchanged (refresh="fine": the coarse
                 cheb.append(self._cheb[i])  # levels; 20 ms of Lanczos each at n = 29)
                 ritz.append(self._ritz[i])
                 continue
             d = np.asarray(A.diagonal(), dtype=np.float64)
             dinv = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)
-            # a rebuilt hierarchy may have other coarse sizes: warm only where they match
-            warm = known and self._ritz[i].shape == (A.shape[0],)
             v0 = self._ritz[i] if warm else _lanczos_start(A.shape[0])
             steps = LANCZOS_WARM_STEPS if warm else LANCZOS_STEPS
             lam, v = _lanczos_max(A, np.sqrt(dinv), v0, steps)
