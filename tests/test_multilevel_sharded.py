@@ -131,6 +131,7 @@ def test_preconditioner_matches_one_device(tw, cycle):
         assert any(b in coll["all-reduce"] for b in (lv1.n * 6 * 8, 2 * lv1.n * 6 * 8))
 
 
+@pytest.mark.slow  # 11-15 s; the preconditioner comparison stays in the default run
 def test_cg_iterations_match_one_device(tw):
     """PCG on the linearised twist: the same iteration count on 4 shards as on one
     device, and the same solution to 1e-12."""

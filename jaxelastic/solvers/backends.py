@@ -698,8 +698,10 @@ class AMGSolver:
             return self.pattern.to_bsr(K)
         return K.tobsr(blocksize=(self.dim, self.dim))
 
-    def update(self, K) -> None:
-        """Set the matrix ``(n, n)`` SPD sparse and (re)build or refresh the hierarchy."""
+    def update(self, K, threads: bool = False) -> None:
+        """Set the matrix ``(n, n)`` SPD sparse and (re)build or refresh the hierarchy
+        (``threads``: a Galerkin refresh's products split over the cores by
+        :func:`galerkin_product`; for calls from Python only, as :meth:`solve`)."""
         import pyamg
 
         t0 = time.perf_counter()
@@ -723,7 +725,7 @@ class AMGSolver:
             self.rebuilt = True
         else:
             if self.refresh == "galerkin" or (self.refresh == "fine" and self._degraded(True)):
-                self._galerkin(A)
+                self._galerkin(A, threads)
             elif self.refresh == "fine":
                 self._fine(A)
             self._updates_since_build += 1
@@ -773,7 +775,7 @@ class AMGSolver:
 
         return cycle
 
-    def _galerkin(self, A):
+    def _galerkin(self, A, threads: bool = False):
         from pyamg.multilevel import coarse_grid_solver
         from pyamg.relaxation.smoothing import change_smoothers
 
@@ -782,7 +784,7 @@ class AMGSolver:
         levels = ml.levels
         levels[0].A = A
         for lo, hi in zip(levels[:-1], levels[1:], strict=True):
-            Ac = lo.R @ lo.A @ lo.P
+            Ac = galerkin_product(lo.R, lo.A, lo.P) if threads else lo.R @ lo.A @ lo.P
             hi.A = Ac.tobsr(blocksize=hi.A.blocksize) if hi.A.format == "bsr" else Ac.tocsr()
         if self.smoother != "chebyshev":  # (Chebyshev: _set_chebyshev, after this)
             change_smoothers(ml, self.sa_options["presmoother"], self.sa_options["postsmoother"])
@@ -1092,6 +1094,26 @@ def _matvec_pool():
     return ThreadPoolExecutor(max_workers=max(1, _cores() - 1), thread_name_prefix="jaxelastic")
 
 
+def _row_parts(A, parts: int) -> list[tuple[int, int, Any]]:
+    """``A`` (CSR or BSR) split by (block) rows into at most ``parts`` non-empty row
+    ranges of about equal stored entries: ``[(first row, end row, sub-matrix), ...]``; the
+    sub-matrices share ``A``'s arrays (views)."""
+    rows = A.blocksize[0] if A.format == "bsr" else 1
+    indptr = A.indptr
+    nb = indptr.size - 1
+    cuts = np.searchsorted(indptr, np.linspace(0, indptr[-1], parts + 1)[1:-1])
+    bounds = np.unique(np.concatenate([[0], np.clip(cuts, 0, nb), [nb]]))
+    pieces = []
+    for r0, r1 in zip(bounds[:-1], bounds[1:], strict=True):
+        s, e = indptr[r0], indptr[r1]
+        sub = type(A)(
+            (A.data[s:e], A.indices[s:e], indptr[r0 : r1 + 1] - s),
+            shape=(int(r1 - r0) * rows, A.shape[1]),
+        )
+        pieces.append((int(r0) * rows, int(r1) * rows, sub))
+    return pieces
+
+
 def split_matvec(A):
     """``v ↦ A v`` for a CSR or BSR matrix, split by (block) rows into as many parts of
     about equal stored entries as there are cores, computed in threads.
@@ -1110,19 +1132,7 @@ def split_matvec(A):
     parts = min(_cores(), 8)
     if parts < 2 or A.nnz < SPLIT_MIN_ENTRIES or A.format not in ("csr", "bsr"):
         return A.__matmul__
-    rows = A.blocksize[0] if A.format == "bsr" else 1
-    indptr = A.indptr
-    nb = indptr.size - 1
-    cuts = np.searchsorted(indptr, np.linspace(0, indptr[-1], parts + 1)[1:-1])
-    bounds = np.unique(np.concatenate([[0], np.clip(cuts, 0, nb), [nb]]))
-    pieces = []
-    for r0, r1 in zip(bounds[:-1], bounds[1:], strict=True):
-        s, e = indptr[r0], indptr[r1]
-        sub = type(A)(
-            (A.data[s:e], A.indices[s:e], indptr[r0 : r1 + 1] - s),
-            shape=(int(r1 - r0) * rows, A.shape[1]),
-        )
-        pieces.append((int(r0) * rows, int(r1) * rows, sub))
+    pieces = _row_parts(A, parts)
     pool = _matvec_pool()
     first, rest = pieces[0], pieces[1:]
 
@@ -1138,6 +1148,61 @@ def split_matvec(A):
         return out
 
     return mv
+
+
+def galerkin_product(R, A, P):
+    """The coarse operator ``R A P`` with ``R``'s (block) rows split over the cores, each
+    part's ``(R_i A) P`` computed in a thread (SciPy's sparse products release the GIL),
+    the parts stacked without a format round trip.
+
+    Every row of the result is computed by the same row-wise sparse product as in
+    ``R @ A @ P``, so the values equal it bit for bit. On the twist n = 29 hierarchy
+    (81k → 6.8k dofs, 3.5M entries in ``A``; 2 cores) 0.13 s against 0.19 s. Below
+    :data:`SPLIT_MIN_ENTRIES` entries in ``A``, for other formats and on one core: the
+    plain product.
+
+    Args:
+        R: ``(m, n)`` restriction, CSR or BSR; A: ``(n, n)``; P: ``(n, m)`` prolongation.
+
+    Returns:
+        ``(m, m)`` sparse matrix (the format ``R @ A @ P`` has).
+    """
+    parts = min(_cores(), 8)
+    if parts < 2 or A.nnz < SPLIT_MIN_ENTRIES or R.format not in ("csr", "bsr"):
+        return R @ A @ P
+    pieces = _row_parts(R, parts)
+    if len(pieces) < 2:
+        return R @ A @ P
+    pool = _matvec_pool()
+    futures = [pool.submit(lambda M: (M @ A) @ P, M) for _, _, M in pieces[1:]]
+    outs = [(pieces[0][2] @ A) @ P] + [f.result() for f in futures]
+    return _stack_rows(outs)
+
+
+def _stack_rows(parts: list) -> Any:
+    """Row blocks of one CSR or BSR format (equal block sizes) stacked by concatenating
+    their arrays (``scipy.sparse.vstack`` goes through COO for BSR: 0.1 s at n = 29);
+    other mixtures by ``scipy.sparse.vstack``."""
+    fmt = parts[0].format
+    same = all(p.format == fmt for p in parts) and fmt in ("csr", "bsr")
+    if same and fmt == "bsr":
+        same = all(p.blocksize == parts[0].blocksize for p in parts)
+    if not same:
+        return sp.vstack(parts, format=fmt if fmt in ("csr", "bsr") else "csr")
+    offsets = np.cumsum([0] + [int(p.indptr[-1]) for p in parts])
+    itype = np.result_type(*(p.indices.dtype for p in parts), *(p.indptr.dtype for p in parts))
+    if offsets[-1] > np.iinfo(itype).max:
+        itype = np.int64
+    indptr = np.concatenate(
+        [parts[0].indptr[:1].astype(itype)]
+        + [p.indptr[1:].astype(itype) + o for p, o in zip(parts, offsets[:-1], strict=True)]
+    )
+    indices = np.concatenate([p.indices.astype(itype, copy=False) for p in parts])
+    data = np.concatenate([p.data for p in parts])
+    shape = (sum(p.shape[0] for p in parts), parts[0].shape[1])
+    if fmt == "bsr":
+        return sp.bsr_matrix((data, indices, indptr), shape=shape, blocksize=parts[0].blocksize)
+    return sp.csr_matrix((data, indices, indptr), shape=shape)
 
 
 def _v_cycle(levels, coarse_solver, lvl: int, x, b) -> None:

@@ -263,7 +263,7 @@ class HostLinearSolver:
             return None
         return self.pattern.upper_data(Ke)
 
-    def _factor(self, data, mass_diag) -> Status:
+    def _factor(self, data, mass_diag, threads: bool = False) -> Status:
         t0 = time.perf_counter()
         md = None if mass_diag is None else np.asarray(mass_diag, dtype=np.float64)
         self._ready = False
@@ -294,7 +294,7 @@ class HostLinearSolver:
             )
             info["setup_time"] = backend.setup_time
         else:
-            backend.update(P.matrix(P.full_data(data)))
+            backend.update(P.matrix(P.full_data(data)), threads=threads)
             pd = bool(np.all(data[P.diag_slots][~self.fixed] > 0))
             info = backend.info()
         self._ready = backend.ready
@@ -354,8 +354,9 @@ class HostLinearSolver:
             r: ``(n_nodes, dim)`` right-hand side (zero on fixed dofs).
             tol: absolute residual tolerance (``‖r‖``, as the device CG); max_iter: cap.
             token: ignored; a data dependency that orders the callbacks.
-            threads: the CG's large matrix products split over the cores (for calls from
-                Python only, see :meth:`~jaxelastic.solvers.backends.AMGSolver.solve`).
+            threads: the hierarchy's Galerkin products and the CG's large matrix products
+                split over the cores (for calls from Python only, see
+                :meth:`~jaxelastic.solvers.backends.AMGSolver.solve`).
 
         Returns:
             ``x`` shaped and typed like ``r`` (zero on fixed dofs), the iteration count
@@ -368,7 +369,7 @@ class HostLinearSolver:
             raise ValueError("factor_cg_upper is for kind='amg' (use factor_solve_upper)")
         with self._lock:
             self.calls += 1
-            status = self._factor(data, mass_diag)
+            status = self._factor(data, mass_diag, threads=threads)
             r_in = np.asarray(r)
             n, d = self.shape
             if r_in.shape != (n, d):
