@@ -22,6 +22,7 @@ from jaxelastic.materials import Lame, neo_hookean
 from jaxelastic.solvers.backends import (
     BACKEND_KINDS,
     CHEBYSHEV_INTERVAL,
+    RATE_MIN_RATIOS,
     AMGSolver,
     DirectSolver,
     available_direct_backends,
@@ -589,7 +590,7 @@ def test_amg_rebuilds_on_slower_convergence():
     K = host.assemble(Ke, md)
     r = rhs.reshape(-1)
 
-    def solve_with_rate(rho, its=4):  # the residuals a CG converging at ρ would hand it
+    def solve_with_rate(rho, its=RATE_MIN_RATIOS + 1):  # the residuals of a CG at rate ρ
         for i in range(its):
             s.precondition(r * rho**i)
 
@@ -601,6 +602,9 @@ def test_amg_rebuilds_on_slower_convergence():
     solve_with_rate(0.15)  # 0.82 of the digits per iteration: keep
     s.update(K)
     assert not s.rebuilt
+    solve_with_rate(0.5, its=RATE_MIN_RATIOS)  # a short CG (inexact Newton): not measured
+    s.update(K)
+    assert not s.rebuilt and s.rate is None
     solve_with_rate(0.3)  # 0.52 of the digits per iteration: rebuild
     s.update(K)
     assert s.rebuilt and s.rate == pytest.approx(0.3)
@@ -624,12 +628,12 @@ def test_amg_fine_refresh():
     s.update(K1)
     assert s.ml is not None
     coarse = s.ml.levels[1].A
-    for i in range(4):
+    for i in range(RATE_MIN_RATIOS + 1):
         s.precondition(r * 0.1**i)
     s.update(K2)  # converged fast: fine level only
     assert not s.rebuilt and s.ml.levels[1].A is coarse
     np.testing.assert_array_equal(s.ml.levels[0].A.toarray(), s._amg_matrix(K2).toarray())
-    for i in range(4):
+    for i in range(RATE_MIN_RATIOS + 1):
         s.precondition(r * 0.2**i)  # 0.70 of the digits per iteration: Galerkin refresh
     s.update(K2)
     assert not s.rebuilt and s.ml.levels[1].A is not coarse
