@@ -90,9 +90,8 @@ def scene_built(precision: str, **integrator):
     return build(d)
 
 
-@pytest.mark.parametrize(
-    "n_steps, static", [(5, False), pytest.param(25, True, marks=pytest.mark.slow)]
-)
+@pytest.mark.slow  # 16-19 s; float32 scenes stay in the default run through the README example
+@pytest.mark.parametrize("n_steps, static", [(5, False), (25, True)])
 def test_default_scene_in_float32_matches_float64(n_steps, static):
     """The default scene (dynamics: backward Euler, damping, gravity) for some time steps
     (and its static solution), float32 vs float64. Stopping at the floor only once a full
