@@ -43,6 +43,7 @@ segments 13; forward mode: None 2,345 (element Hessians), ``"step"`` 106, segmen
 from __future__ import annotations
 
 import functools
+import math
 import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -253,6 +254,13 @@ def _check_dynamic(base: Potential, integ: Integrator):
         raise ValueError(f"time step h must be > 0, got {integ.h!r}")
     if integ.method not in ("backward_euler", "bdf2"):
         raise ValueError(f"method must be 'backward_euler' or 'bdf2', got {integ.method!r}")
+    for name in ("alpha", "beta"):
+        v = getattr(integ, name)
+        if not isinstance(v, Tracer) and not (math.isfinite(float(v)) and float(v) >= 0):
+            raise ValueError(
+                f"Rayleigh damping {name} must be finite and >= 0 (0 = off), got {v!r}: a "
+                "negative damping coefficient feeds energy into the body"
+            )
 
 
 def step(

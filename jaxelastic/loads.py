@@ -85,6 +85,8 @@ def _per_item(value, m: int, d: int, name: str, what: str) -> np.ndarray:
         raise ValueError(
             f"{name} must have shape ({d},) or ({m}, {d}) (one per {what}), got {v.shape}"
         )
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be finite, got {np.count_nonzero(~np.isfinite(v))} NaN/inf")
     return np.broadcast_to(v, (m, d))
 
 
@@ -94,6 +96,11 @@ def _node_array(nodes, n: int) -> np.ndarray:
         if idx.shape != (n,):
             raise ValueError(f"boolean node mask must have shape ({n},), got {idx.shape}")
         idx = np.flatnonzero(idx)
+    if idx.size and idx.dtype.kind not in "iu":
+        raise ValueError(
+            f"node indices must be integers (or a boolean mask of shape ({n},)), got dtype "
+            f"{idx.dtype}"
+        )
     idx = idx.astype(np.int64).ravel()
     if idx.size and (idx.min() < 0 or idx.max() >= n):
         raise ValueError(f"node indices must lie in [0, {n})")

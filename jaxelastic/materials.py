@@ -103,6 +103,54 @@ class Lame(NamedTuple):
     lam: jax.Array | float
 
 
+LAME_RATIO_MAX = 1e12
+"""The largest λ/μ :func:`check_lame` accepts: ν = 0.5 − 5·10⁻¹³, beyond which float64
+cannot resolve the shear response next to the volumetric one (the residual's round-off
+floor exceeds the loads, and a solve would stop at it with a meaningless answer)."""
+
+
+def check_lame(params: Lame, dim: int) -> None:
+    """Refuse concrete Lamé parameters no elastic solid has, or float64 cannot resolve.
+
+    Needs μ > 0 and a positive bulk modulus ``λ + 2μ/dim`` (stability of the linearised
+    response), everything finite, and ``λ/μ ≤`` :data:`LAME_RATIO_MAX`. Traced parameters
+    (inside ``jit``/``grad``) are not checked.
+
+    Raises:
+        ValueError: naming the parameter, the first offending cell and what to do.
+    """
+    try:
+        mu = np.asarray(params.mu, dtype=np.float64)
+        lam = np.asarray(params.lam, dtype=np.float64)
+    except (TypeError, jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return
+    mu, lam = np.broadcast_arrays(np.atleast_1d(mu), np.atleast_1d(lam))
+
+    def where(bad) -> str:
+        i = int(np.flatnonzero(bad.ravel())[0])
+        return "" if bad.size == 1 else f" (at {int(bad.sum())} cell(s), first cell {i})"
+
+    bad = ~(np.isfinite(mu) & np.isfinite(lam))
+    if bad.any():
+        raise ValueError(f"Lame parameters must be finite{where(bad)}")
+    if (bad := mu <= 0).any():
+        raise ValueError(
+            f"shear modulus mu must be > 0{where(bad)}, got {mu.ravel()[bad.ravel()][0]!r}: "
+            "build the parameters with je.Lame(*je.lame(E, nu))"
+        )
+    if (bad := lam + 2.0 * mu / dim <= 0).any():
+        raise ValueError(
+            f"the bulk modulus lam + 2 mu / {dim} must be > 0{where(bad)} (Poisson's ratio "
+            "above -1): build the parameters with je.Lame(*je.lame(E, nu))"
+        )
+    if (bad := lam > LAME_RATIO_MAX * mu).any():
+        raise ValueError(
+            f"lam / mu exceeds {LAME_RATIO_MAX:.0e}{where(bad)} (Poisson's ratio within 5e-13 "
+            "of 0.5): float64 cannot resolve the shear response next to the volumetric one. "
+            "Use nu <= 0.4999999 with an F-bar or P2 element for near-incompressibility"
+        )
+
+
 def lame(E, nu, dim: int = 3, plane: str = "strain") -> tuple:
     """Lamé parameters (μ, λ) from Young's modulus E [Pa] and Poisson's ratio ν.
 

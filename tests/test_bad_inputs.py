@@ -403,3 +403,114 @@ def test_read_mesh_of_other_empty_files_says_empty(tmp_path):
         f"{gmsh}: the mesh is empty (0 points, 0 cells); a mesh needs triangle (2D) or "
         "tetrahedron (3D) cells"
     )
+
+
+# ----------------------------------------------------------------------------------------
+# session 10 battery: refusals that used to end in a misleading status or a false SUCCESS
+# ----------------------------------------------------------------------------------------
+
+
+def _clamped_cube(cube):
+    f = jnp.asarray(loads.point_load(cube, loads.nodes_on_plane(cube, 0, 1.0), [0, 0, -10.0]))
+    pot = je.Potential(mesh=cube, params=P3, f_ext=f, psi=M.neo_hookean)
+    return pot, loads.fix(cube, loads.nodes_on_plane(cube, 0, 0.0))
+
+
+def test_dirichlet_mask_must_be_boolean(cube):
+    pot, bc = _clamped_cube(cube)
+    for mask in (bc.mask.astype(int), bc.mask.astype(float)):
+        with pytest.raises(TypeError, match=r"bc\.mask must be a boolean array.*astype\(bool\)"):
+            je.solve(pot, je.Dirichlet(mask, bc.values))
+
+
+def test_nonfinite_prescribed_values_are_refused(cube):
+    pot, bc = _clamped_cube(cube)
+    values = jnp.where(bc.mask, jnp.nan, bc.values)
+    with pytest.raises(ValueError, match=r"bc\.values is not finite at \d+ prescribed dof"):
+        je.solve(pot, je.Dirichlet(bc.mask, values))
+    free_nan = jnp.where(bc.mask, bc.values, jnp.nan)  # ignored off the mask: fine
+    assert je.solve(pot, je.Dirichlet(bc.mask, free_nan)).ok
+
+
+def test_potential_fields_and_mesh_must_be_arrays(cube):
+    pot, bc = _clamped_cube(cube)
+    with pytest.raises(TypeError, match=r"pot\.f_ext must be an array.*got list"):
+        je.solve(pot.replace(f_ext=np.asarray(pot.f_ext).tolist()), bc)
+    with pytest.raises(TypeError, match=r"pot\.mesh must be a je\.Mesh"):
+        je.solve(je.Potential(mesh=np.zeros((3, 3)), params=P3, psi=M.neo_hookean), bc)
+
+
+@pytest.mark.parametrize(
+    "params, match",
+    [
+        (M.Lame(1e5, 1e30), r"lam / mu exceeds 1e\+12"),
+        (M.Lame(-1.0, 1.0), r"shear modulus mu must be > 0"),
+        (M.Lame(1.0, -1.0), r"bulk modulus lam \+ 2 mu / 3 must be > 0"),
+        (M.Lame(1.0, np.inf), r"must be finite"),
+    ],
+)
+def test_impossible_lame_parameters_are_refused(cube, params, match):
+    pot, bc = _clamped_cube(cube)
+    with pytest.raises(ValueError, match=match):
+        je.solve(pot.replace(params=params), bc)
+
+
+def test_one_bad_cell_of_a_lame_field_is_named(cube):
+    pot, bc = _clamped_cube(cube)
+    mu = np.full(cube.n_cells, float(P3.mu))
+    mu[7] = -1.0
+    with pytest.raises(ValueError, match=r"at 1 cell\(s\), first cell 7"):
+        je.solve(pot.replace(params=M.Lame(jnp.asarray(mu), P3.lam)), bc)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(xtol=1.0), r"xtol must be in \[0, 0\.001\]"),
+        (dict(xtol=float("nan")), r"xtol must be finite"),
+        (dict(max_steps=2.5), r"max_steps must be an integer >= 1"),
+        (dict(max_steps="10"), r"max_steps must be an integer >= 1"),
+        (dict(ls_max=-1), r"ls_max must be an integer >= 1"),
+        (dict(armijo=2.0), r"armijo .* must be in \[0, 1\)"),
+        (dict(armijo=-1.0), r"armijo .* must be in \[0, 1\)"),
+        (dict(rtol=float("nan")), r"rtol must be finite"),
+    ],
+)
+def test_newton_settings_are_checked(kw, match):
+    with pytest.raises(ValueError, match=match):
+        je.Newton(**kw)
+    with pytest.raises(TypeError, match="require_positive_J must be True or False"):
+        je.Newton(require_positive_J="yes")
+
+
+def test_assemble_checks_its_shapes(cube):
+    with pytest.raises(ValueError, match=r"per_element must have shape \(48, 4, 3\)"):
+        je.assemble(cube, jnp.ones((3, 4, 3)))
+    with pytest.raises(TypeError, match="mesh must be a je.Mesh"):
+        je.assemble(jnp.ones((48, 4, 3)), cube)  # arguments swapped
+    np.testing.assert_allclose(float(je.assemble(cube, jnp.ones((48, 4, 3))).sum()), 48 * 4 * 3)
+
+
+def test_node_indices_must_be_integers_and_loads_finite(cube):
+    with pytest.raises(ValueError, match="node indices must be integers"):
+        loads.fix(cube, np.array([0.5, 1.7]))
+    with pytest.raises(ValueError, match="force must be finite"):
+        loads.point_load(cube, [0, 1], [0.0, np.nan, 0.0])
+
+
+@pytest.mark.parametrize("scale", [1e200, 1e-120])
+def test_coordinates_beyond_float64_are_refused(scale):
+    P = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float) * scale
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the refusal, not a RuntimeWarning
+        with pytest.raises(je.MeshError, match="over- or underflow float64.*rescale"):
+            je.from_arrays(P, np.array([[0, 1, 2, 3], [1, 2, 3, 4]]))
+
+
+def test_negative_rayleigh_damping_is_refused(cube):
+    pot, bc = _clamped_cube(cube)
+    pot = pot.replace(mass=jnp.asarray(loads.lumped_mass(cube, 1000.0)))
+    st = je.dynamics.init_state(cube.points)
+    for kw in (dict(alpha=-1.0), dict(beta=float("nan"))):
+        with pytest.raises(ValueError, match="Rayleigh damping .* must be finite and >= 0"):
+            je.dynamics.step(pot, st, bc, je.Integrator(h=0.01, **kw))

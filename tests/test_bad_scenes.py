@@ -359,3 +359,10 @@ def test_a_second_signal_stops_at_once():
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(5)
     assert e.value.signame == "SIGINT"
+
+
+def test_a_dynamic_scene_of_a_billion_steps_is_refused():
+    data = dict(TINY, integrator={"type": "dynamic", "h": 1e-9, "duration": 1.0})
+    data["material"] = dict(TINY["material"], density=1.0)
+    with pytest.raises(SceneError, match=r"duration / h = 1e\+09 time steps, more than 1e\+06"):
+        load_scene(data)

@@ -302,14 +302,23 @@ def _check_geometry(pts: np.ndarray, cls: np.ndarray, el: Element, orient: str):
     """
     dim = pts.shape[1]
     Jac = _rest_jacobians(pts, cls, el)  # (c, q, d, d)
-    detJ = np.linalg.det(Jac)  # (c, q)
+    with np.errstate(all="ignore"):  # (over/underflow is refused below)
+        detJ = np.linalg.det(Jac)  # (c, q)
     # scale-aware degeneracy test: measure relative to (longest vertex-to-vertex edge)^dim
     h2 = np.zeros(cls.shape[0])
     for a, b in itertools.combinations(range(dim + 1), 2):  # the simplex's vertices
         e = pts[cls[:, a]] - pts[cls[:, b]]
         np.maximum(h2, np.einsum("cd,cd->c", e, e), out=h2)
     h = np.sqrt(h2)
-    rel = detJ / np.maximum(h, np.finfo(float).tiny)[:, None] ** dim
+    with np.errstate(all="ignore"):  # over/underflow: refused below with the reason
+        rel = detJ / np.maximum(h, np.finfo(float).tiny)[:, None] ** dim
+    if not (np.isfinite(rel).all() and np.isfinite(detJ).all()):
+        ext = float(np.ptp(pts, axis=0).max()) if pts.size else 0.0
+        raise MeshError(
+            f"the cells' rest measures over- or underflow float64 (coordinates spanning "
+            f"{ext:.3g}): rescale the coordinates to units where the body is between about "
+            "1e-30 and 1e30 across (e.g. metres or millimetres)"
+        )
     degenerate = (np.abs(rel) < 1e-12).any(axis=1)
     if degenerate.any():
         c = np.flatnonzero(degenerate)

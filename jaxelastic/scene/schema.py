@@ -764,10 +764,11 @@ class SolverSpec(Table):
     atol: NonNegative = Field(
         default=0.0, description="absolute tolerance on the force residual [N]"
     )
-    xtol: NonNegative = Field(
+    xtol: Annotated[Number, Field(ge=0, le=1e-3)] = Field(
         default=1e-12,
         description="also converged when a Newton step moves no node by more than xtol x "
-        "the rest bounding-box diagonal",
+        "the rest bounding-box diagonal (at most 1e-3: a larger one reports unconverged "
+        "solves as converged)",
     )
     hessian: Literal["hvp", "element", "projected"] = Field(
         default="element",
@@ -831,6 +832,11 @@ else:
     InitialVelocity = either("array", array=Vector, str=CallableName)
 
 
+MAX_TIME_STEPS = 1_000_000
+"""The most time steps (``duration / h``) a dynamic scene may ask for: more is almost
+always a unit slip in ``h`` and would run for days without an error."""
+
+
 class DynamicIntegrator(Table):
     """Time stepping: backward Euler or BDF2 as incremental-potential minimisation."""
 
@@ -868,6 +874,13 @@ class DynamicIntegrator(Table):
     def _duration(self):
         if self.duration < self.h * (1 - 1e-12):
             raise fail(f"{{at}}.duration must be >= h = {self.h!r}, got {self.duration!r}")
+        steps = self.duration / self.h
+        if steps > MAX_TIME_STEPS:
+            raise fail(
+                f"{{at}}: duration / h = {steps:.3g} time steps, more than {MAX_TIME_STEPS:.0e}: "
+                "raise h (backward Euler and BDF2 are unconditionally stable) or shorten "
+                "the duration"
+            )
         return self
 
 

@@ -63,6 +63,22 @@ __all__ = ["Newton", "HESSIANS", "host_minimize", "contact_potential"]
 HESSIANS = ("element", "hvp", "projected")
 
 
+XTOL_MAX = 1e-3
+"""The largest :attr:`Newton.xtol` accepted: a step-size criterion above it would declare
+convergence while nodes still move by more than 0.1 % of the body's diagonal."""
+
+
+def _real(v, name: str) -> float:
+    """``v`` as a finite float, or a ValueError naming the field."""
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {v!r}") from None
+    if not np.isfinite(f):
+        raise ValueError(f"{name} must be finite, got {v!r}")
+    return f
+
+
 @dataclasses.dataclass(frozen=True)
 class Newton:
     """Newton's method with an inversion-aware backtracking line search (frozen, hashable:
@@ -111,10 +127,30 @@ class Newton:
     def __post_init__(self):
         if self.hessian not in HESSIANS:
             raise ValueError(f"hessian must be one of {HESSIANS}, got {self.hessian!r}")
-        if int(self.max_steps) < 1:
-            raise ValueError(f"max_steps must be >= 1, got {self.max_steps!r}")
+        for name in ("max_steps", "ls_max"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if not isinstance(self.require_positive_J, (bool, np.bool_)):
+            raise TypeError(
+                f"require_positive_J must be True or False, got {self.require_positive_J!r}"
+            )
+        if not 0.0 <= _real(self.armijo, "armijo") < 1.0:
+            raise ValueError(
+                f"armijo (the line search's sufficient-decrease constant) must be in [0, 1), "
+                f"got {self.armijo!r}; 1e-4 is usual"
+            )
+        if not 0.0 <= _real(self.xtol, "xtol") <= XTOL_MAX:
+            raise ValueError(
+                f"xtol must be in [0, {XTOL_MAX:g}], got {self.xtol!r}: a Newton step that "
+                "moves no node by more than xtol x the body's diagonal counts as converged, "
+                "so a larger xtol reports SUCCESS for an unconverged solve (the default "
+                "1e-12 only catches a residual stuck at its round-off floor)"
+            )
         if not self.kappa_max_factor >= 1:
             raise ValueError(f"kappa_max_factor must be >= 1, got {self.kappa_max_factor!r}")
+        for name in ("rtol", "atol", "kappa_max_factor"):
+            _real(getattr(self, name), name)
         if not (self.rtol >= 0 and self.atol >= 0) or (self.rtol == 0 and self.atol == 0):
             raise ValueError(
                 f"need rtol >= 0 and atol >= 0, not both 0; got rtol={self.rtol!r}, "

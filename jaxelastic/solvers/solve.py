@@ -19,6 +19,8 @@ from jax.core import Tracer
 
 from ..distributed import host_array
 from ..loads import Dirichlet
+from ..materials import Lame, check_lame
+from ..mesh import Mesh
 from ..potential import Potential
 from .adjoint import ImplicitAdjoint, differentiable_minimize
 from .linear import AMG, Direct, bind_linear
@@ -64,6 +66,10 @@ def _split_hierarchy(solver: Newton):
     return dataclasses.replace(solver, linear=dataclasses.replace(solver.linear, hierarchy=None)), h
 
 
+def _is_array(a) -> bool:
+    return hasattr(a, "shape") and hasattr(a, "dtype")
+
+
 def _check_inputs(pot: Potential, bc: Dirichlet, x0):
     if not isinstance(pot, Potential):
         raise TypeError(f"pot must be a je.Potential, got {type(pot).__name__}")
@@ -72,16 +78,53 @@ def _check_inputs(pot: Potential, bc: Dirichlet, x0):
             f"bc must be je.Dirichlet data (e.g. je.loads.fix(mesh, nodes)), got "
             f"{type(bc).__name__}"
         )
+    if not isinstance(pot.mesh, Mesh):
+        raise TypeError(
+            f"pot.mesh must be a je.Mesh (e.g. je.box(...), je.read_mesh(path), "
+            f"je.from_arrays(points, cells)), got {type(pot.mesh).__name__}"
+        )
     shape = tuple(pot.mesh.points.shape)
     for name, a in (("bc.mask", bc.mask), ("bc.values", bc.values)):
+        if not _is_array(a):
+            raise TypeError(
+                f"{name} must be an array of shape {shape} (n_nodes, dim), got "
+                f"{type(a).__name__}: build the Dirichlet data with je.loads.fix(mesh, nodes) "
+                "or pass jnp.asarray(...)"
+            )
         if tuple(jnp.shape(a)) != shape:
             raise ValueError(f"{name} must have shape {shape} (n_nodes, dim), got {jnp.shape(a)}")
+    if jnp.result_type(bc.mask) != jnp.bool_:
+        raise TypeError(
+            f"bc.mask must be a boolean array (True where a dof is prescribed), got dtype "
+            f"{jnp.result_type(bc.mask)}: use mask.astype(bool), or build the Dirichlet data "
+            "with je.loads.fix(mesh, nodes)"
+        )
+    if not jnp.issubdtype(jnp.result_type(bc.values), jnp.floating):
+        raise TypeError(f"bc.values must be floating point, got {jnp.result_type(bc.values)}")
+    if not isinstance(bc.mask, Tracer) and not isinstance(bc.values, Tracer):
+        m, v = host_array(bc.mask), host_array(bc.values)
+        bad = ~np.isfinite(v) & m
+        if bad.any():
+            node, comp = (int(i) for i in np.argwhere(bad)[0])
+            raise ValueError(
+                f"bc.values is not finite at {int(bad.sum())} prescribed dof(s) (first: node "
+                f"{node}, component {comp}): every prescribed position must be a finite number"
+            )
+    for name in ("f_ext", "mass", "x_tilde", "x_prev"):
+        a = getattr(pot, name)
+        if a is not None and not _is_array(a):
+            raise TypeError(
+                f"pot.{name} must be an array (or None), got {type(a).__name__}: pass "
+                f"jnp.asarray(...) of the right shape"
+            )
     dt, vt = jnp.result_type(pot.mesh.points), jnp.result_type(bc.values)
     if jnp.issubdtype(vt, jnp.floating) and jnp.finfo(vt).bits > jnp.finfo(dt).bits:
         raise ValueError(
             f"bc.values has dtype {vt} but the mesh is {dt}: build the Dirichlet data from "
             f"the mesh (je.loads.fix) or cast the values to {dt}"
         )
+    if isinstance(pot.params, Lame) and not is_traced(pot.params):
+        check_lame(pot.params, int(shape[1]))
     if x0 is None:
         return pot.mesh.points
     if tuple(jnp.shape(x0)) != shape:
