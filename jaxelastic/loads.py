@@ -176,9 +176,18 @@ def nodes_in_box(mesh: Mesh, lo, hi, tol: float = 1e-9) -> np.ndarray:
     return nodes_where(mesh, lambda X: np.all((X >= lo - tol) & (X <= hi + tol), axis=1))
 
 
-def nodes_on_plane(mesh: Mesh, axis: int, value: float, tol: float | None = None) -> np.ndarray:
-    """Indices of nodes with ``X[axis] ≈ value`` (tolerance relative to the mesh size)."""
+def nodes_on_plane(
+    mesh: Mesh, axis: int | str, value: float, tol: float | None = None
+) -> np.ndarray:
+    """Indices of nodes with ``X[axis] ≈ value`` (tolerance relative to the mesh size);
+    ``axis`` an index ``0 … dim−1`` or ``"x"``, ``"y"``, ``"z"``."""
     X = np.asarray(mesh.points)
+    d = X.shape[1]
+    if isinstance(axis, str) and axis in "xyz"[:d] and len(axis) == 1:
+        axis = "xyz".index(axis)
+    if isinstance(axis, bool) or not isinstance(axis, (int, np.integer)) or not 0 <= axis < d:
+        names = ", ".join(f'"{c}"' for c in "xyz"[:d])
+        raise ValueError(f"axis must be 0 … {d - 1} or {names} for a {d}D mesh, got {axis!r}")
     if tol is None:
         tol = 1e-8 * max(float(np.ptp(X, axis=0).max()), 1.0)
     return nodes_where(mesh, lambda X: np.abs(X[:, axis] - value) <= tol)

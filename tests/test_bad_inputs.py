@@ -514,3 +514,17 @@ def test_negative_rayleigh_damping_is_refused(cube):
     for kw in (dict(alpha=-1.0), dict(beta=float("nan"))):
         with pytest.raises(ValueError, match="Rayleigh damping .* must be finite and >= 0"):
             je.dynamics.step(pot, st, bc, je.Integrator(h=0.01, **kw))
+
+
+def test_generator_extents_and_plane_axes_are_checked(cube):
+    with pytest.raises(ValueError, match=r"size must have 3 entries"):
+        je.box(2, 2, 2, size=(1.0, 1.0))
+    with pytest.raises(ValueError, match=r"size entries must be finite and > 0"):
+        je.rectangle(2, 2, size=(1.0, -1.0))
+    with pytest.raises(ValueError, match=r"origin must have 2 entries"):
+        je.rectangle(2, 2, origin=(0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match=r'axis must be 0 … 2 or "x", "y", "z" for a 3D mesh'):
+        loads.nodes_on_plane(cube, 5, 0.0)
+    np.testing.assert_array_equal(
+        loads.nodes_on_plane(cube, "z", 1.0), loads.nodes_on_plane(cube, 2, 1.0)
+    )

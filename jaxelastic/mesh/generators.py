@@ -21,6 +21,21 @@ def _check_counts(**counts):
             raise ValueError(f"{k} must be a positive integer, got {v!r}")
 
 
+def _check_extent(size, origin, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """``size`` and ``origin`` as ``(d,)`` float arrays, or a ValueError naming the one
+    of the wrong length or with a bad value (sizes must be finite and > 0)."""
+    out = []
+    for name, v in (("size", size), ("origin", origin)):
+        a = np.asarray(v, dtype=np.float64)
+        if a.shape != (d,):
+            raise ValueError(f"{name} must have {d} entries (one per axis), got {v!r}")
+        if not np.all(np.isfinite(a)) or (name == "size" and not np.all(a > 0)):
+            what = "finite and > 0" if name == "size" else "finite"
+            raise ValueError(f"{name} entries must be {what}, got {v!r}")
+        out.append(a)
+    return out[0], out[1]
+
+
 def rectangle(
     nx: int,
     ny: int,
@@ -45,6 +60,7 @@ def rectangle(
         ``2·nx·ny`` triangles. Node ``i + (nx+1)·j`` sits at ``origin + (i·Lx/nx, j·Ly/ny)``.
     """
     _check_counts(nx=nx, ny=ny)
+    size, origin = _check_extent(size, origin, 2)
     x = np.linspace(0.0, size[0], nx + 1) + origin[0]
     y = np.linspace(0.0, size[1], ny + 1) + origin[1]
     X, Y = np.meshgrid(x, y, indexing="xy")
@@ -92,6 +108,7 @@ def box(
         ``origin + (i·Lx/nx, j·Ly/ny, k·Lz/nz)``.
     """
     _check_counts(nx=nx, ny=ny, nz=nz)
+    size, origin = _check_extent(size, origin, 3)
     axes = [np.linspace(0.0, size[a], n + 1) + origin[a] for a, n in enumerate((nx, ny, nz))]
     Z, Y, X = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
