@@ -242,6 +242,15 @@ def check_psi(
 
     try:
         out = jax.eval_shape(at_identity, spec)
+    except (AttributeError, KeyError) as e:  # ψ read a field its parameters do not have
+        if not own_errors:
+            return
+        raise TypeError(
+            f"{where}: ψ {psi_name(psi)!r} could not read its parameters "
+            f"({type(e).__name__}: {e}); they were a {type(params).__name__}. The built-in "
+            "models take je.Lame(mu, lam) (e.g. je.Lame(*je.lame(E, nu))); a user ψ gets "
+            "exactly the pytree given as params"
+        ) from e
     except Exception:
         if own_errors:
             raise

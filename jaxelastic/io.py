@@ -572,6 +572,13 @@ def write_atomic(path, write_fn) -> None:
     """
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"cannot write {path!r}: it is a directory; give a file name")
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(
+            f"cannot write {path!r}: the directory {directory!r} does not exist (create it "
+            "first, e.g. os.makedirs(..., exist_ok=True))"
+        )
     tmp = None
     try:
         for _ in range(100):

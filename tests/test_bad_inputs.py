@@ -528,3 +528,17 @@ def test_generator_extents_and_plane_axes_are_checked(cube):
     np.testing.assert_array_equal(
         loads.nodes_on_plane(cube, "z", 1.0), loads.nodes_on_plane(cube, 2, 1.0)
     )
+
+
+def test_parameters_a_builtin_psi_cannot_read_are_named(cube):
+    pot, bc = _clamped_cube(cube)
+    for params in ({"mu": 1.0, "lam": 1.0}, 1.0):
+        with pytest.raises(TypeError, match=r"could not read its parameters.*je\.Lame\(mu, lam\)"):
+            je.solve(pot.replace(params=params), bc)
+
+
+def test_write_vtu_names_a_missing_directory_not_its_temporary(cube, tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"the directory .*nope.* does not exist"):
+        write_vtu(tmp_path / "nope" / "a.vtu", cube, np.asarray(cube.points))
+    with pytest.raises(IsADirectoryError, match="it is a directory"):
+        write_vtu(tmp_path, cube, np.asarray(cube.points))

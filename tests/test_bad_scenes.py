@@ -366,3 +366,11 @@ def test_a_dynamic_scene_of_a_billion_steps_is_refused():
     data["material"] = dict(TINY["material"], density=1.0)
     with pytest.raises(SceneError, match=r"duration / h = 1e\+09 time steps, more than 1e\+06"):
         load_scene(data)
+
+
+def test_a_probe_far_outside_the_body_is_refused():
+    data = apply_overrides(TINY, {"output.probes": [[1e6, 1e6]]})
+    with pytest.raises(
+        SceneError, match=r"\[output\]\.probes\[0\] = \[1000000\.0, 1000000\.0\] lies"
+    ):
+        build(load_scene(data))

@@ -739,10 +739,24 @@ def _tip_node(mesh: Mesh, bc: Dirichlet) -> int:
     return int(np.argmax(dist))
 
 
+PROBE_MAX_DISTANCE = 0.5
+"""A probe point farther than this fraction of the rest body's diagonal from every node
+is refused (it would be reported at the nearest node: almost always a typo or a unit
+slip)."""
+
+
 def _probes(scene: Scene, X: np.ndarray) -> list:
     out = []
-    for p in scene.spec.output.probes:
-        node = int(np.argmin(np.linalg.norm(X - np.asarray(p), axis=1)))
+    diag = float(np.linalg.norm(np.ptp(X, axis=0))) if X.size else 0.0
+    for i, p in enumerate(scene.spec.output.probes):
+        dist = np.linalg.norm(X - np.asarray(p), axis=1)
+        node = int(np.argmin(dist))
+        if dist[node] > PROBE_MAX_DISTANCE * diag:
+            raise scene.error(
+                f"[output].probes[{i}] = {list(p)} lies {dist[node]:.3g} from the nearest node "
+                f"(the body's diagonal is {diag:.3g}): give points on or inside the body, in "
+                "the mesh's units"
+            )
         out.append((node, list(p)))
     return out
 

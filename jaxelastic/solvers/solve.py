@@ -18,6 +18,7 @@ import numpy as np
 from jax.core import Tracer
 
 from ..distributed import host_array
+from ..energy import check_psi
 from ..loads import Dirichlet
 from ..materials import Lame, check_lame
 from ..mesh import Mesh
@@ -123,8 +124,13 @@ def _check_inputs(pot: Potential, bc: Dirichlet, x0):
             f"bc.values has dtype {vt} but the mesh is {dt}: build the Dirichlet data from "
             f"the mesh (je.loads.fix) or cast the values to {dt}"
         )
-    if isinstance(pot.params, Lame) and not is_traced(pot.params):
-        check_lame(pot.params, int(shape[1]))
+    if not is_traced(pot.params):
+        if isinstance(pot.params, Lame):
+            check_lame(pot.params, int(shape[1]))
+        mesh = pot.mesh
+        check_psi(
+            pot.psi, int(shape[1]), mesh.points.dtype, pot.params, mesh.n_cells, where="je.solve"
+        )
     if x0 is None:
         return pot.mesh.points
     if tuple(jnp.shape(x0)) != shape:
