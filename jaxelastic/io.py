@@ -262,6 +262,13 @@ def read_mesh(path, *, orient: str = "fix", file_format: str | None = None) -> M
     new = np.full(n_file, -1, dtype=np.int64)
     new[node_map] = np.arange(node_map.size)
     points = np.asarray(raw.points, dtype=np.float64)[node_map]
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():  # named by the file's node numbers, not the pruned ones
+        idx = node_map[bad]
+        raise MeshIOError(
+            f"{path}: {idx.size} node(s) used by cells have NaN/inf coordinates, e.g. file "
+            f"nodes {idx[:5].tolist()} (0-based)"
+        )
     if vol_dim == 2 and points.shape[1] == 3:
         extent = np.ptp(points[:, :2], axis=0).max()
         if np.ptp(points[:, 2]) > 1e-10 * extent:

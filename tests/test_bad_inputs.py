@@ -542,3 +542,11 @@ def test_write_vtu_names_a_missing_directory_not_its_temporary(cube, tmp_path):
         write_vtu(tmp_path / "nope" / "a.vtu", cube, np.asarray(cube.points))
     with pytest.raises(IsADirectoryError, match="it is a directory"):
         write_vtu(tmp_path, cube, np.asarray(cube.points))
+
+
+def test_read_mesh_names_a_nan_node_by_its_file_index(tmp_path):
+    pts = np.array([[9, 9, 9], [0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])  # node 0 unused
+    pts[4, 2] = np.nan
+    meshio.write(tmp_path / "m.vtu", meshio.Mesh(pts, [("tetra", np.array([[1, 2, 3, 4]]))]))
+    with pytest.raises(MeshIOError, match=r"NaN/inf coordinates, e\.g\. file nodes \[4\]"):
+        read_mesh(tmp_path / "m.vtu")
