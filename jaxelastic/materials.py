@@ -57,6 +57,8 @@ from .rubber import yeoh_params as yeoh_params
 __all__ = [
     "Lame",
     "lame",
+    "check_lame",
+    "LAME_RATIO_MAX",
     "linear",
     "stvk",
     "corotated",
