@@ -173,7 +173,7 @@ def lame(E, nu, dim: int = 3, plane: str = "strain") -> tuple:
         raise ValueError(f"dim must be 2 or 3, got {dim!r}")
     if plane not in ("strain", "stress"):
         raise ValueError(f"plane must be 'strain' or 'stress', got {plane!r}")
-    E_c, nu_c = _concrete(E), _concrete(nu)
+    E_c, nu_c = _concrete(E, "Young's modulus E"), _concrete(nu, "Poisson's ratio nu")
     if E_c is not None:
         if not np.all(np.isfinite(E_c)):
             raise ValueError(f"Young's modulus E must be finite, got {E!r}")
@@ -192,12 +192,15 @@ def lame(E, nu, dim: int = 3, plane: str = "strain") -> tuple:
     return mu, lam
 
 
-def _concrete(v):
+def _concrete(v, name: str = "value"):
     """NumPy value of ``v``, or None when it is a tracer (validated only when concrete)."""
     try:
-        return np.asarray(v)
+        a = np.asarray(v)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
         return None
+    if a.dtype.kind not in "biuf":
+        raise TypeError(f"{name} must be a real number or an array of them, got {v!r}")
+    return a
 
 
 def linear(F, params: Lame):

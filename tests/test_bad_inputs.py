@@ -550,3 +550,9 @@ def test_read_mesh_names_a_nan_node_by_its_file_index(tmp_path):
     meshio.write(tmp_path / "m.vtu", meshio.Mesh(pts, [("tetra", np.array([[1, 2, 3, 4]]))]))
     with pytest.raises(MeshIOError, match=r"NaN/inf coordinates, e\.g\. file nodes \[4\]"):
         read_mesh(tmp_path / "m.vtu")
+
+
+def test_lame_names_a_non_numeric_argument():
+    for E, nu, name in (("1e5", 0.3, "Young's modulus E"), (1e5, None, "Poisson's ratio nu")):
+        with pytest.raises(TypeError, match=f"{name} must be a real number"):
+            je.lame(E, nu)
