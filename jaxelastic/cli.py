@@ -225,6 +225,21 @@ def _report(summary: dict, args, clock, t0: float, fit: bool = False) -> None:
     print(table(summary, compile_s=clock.seconds, wall_s=wall))
 
 
+SCENE_ADVICE = {
+    1: "raise [solver] max_steps, apply the load in more steps ([integrator] load_steps, "
+    "static) or take smaller time steps ([integrator] h, dynamic)",
+    2: "apply the load in more steps ([integrator] load_steps) or set [solver] hessian = "
+    '"projected"',
+    3: "use an inversion-safe [material] model (stable_neo_hookean, fixed_corotated) or more "
+    "load steps",
+    4: 'check the scene\'s loads and material values for NaN/inf; [solver] precision = "float64"',
+    5: '[solver] hessian = "projected" or linear = "direct"',
+    6: '[solver] hessian = "projected", or Dirichlet conditions that hold the body',
+}
+"""What to change in a scene file for each failed :class:`~jaxelastic.solvers.Status`
+(by value), printed under the Python-API advice of the :class:`SolveError`."""
+
+
 def _run(args) -> int:
     from .scene import SceneError, load_scene
 
@@ -254,6 +269,9 @@ def _run(args) -> int:
         return 2
     except SolveError as e:
         print(f"jaxelastic: solve failed: {e}", file=sys.stderr)
+        hint = SCENE_ADVICE.get(int(e.status), "")
+        if hint:
+            print(f"jaxelastic: in the scene: {hint}", file=sys.stderr)
         return 1
     except OSError as e:  # e.g. an output directory that cannot be created or written
         print(f"jaxelastic: error: {e}", file=sys.stderr)

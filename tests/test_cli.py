@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from _common import TINY_SCENE, scene_toml
 
+import jaxelastic as je
 from jaxelastic import cli
 from jaxelastic.scene import apply_overrides
 
@@ -188,7 +189,10 @@ def test_failed_solve_exits_1_with_summary(tmp_path, capsys):
     scene = _scene_file(tmp_path, data)
     out = tmp_path / "f"
     assert cli.main(["run", str(scene), "--out", str(out), "--no-cache", "--no-progress"]) == 1
-    assert "solve failed" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "solve failed" in err
+    assert "in the scene: raise [solver] max_steps" in err  # the scene's keys, not the API
+    assert set(cli.SCENE_ADVICE) == {int(s) for s in je.Status if s != je.Status.SUCCESS}
     with open(out / "summary.json") as f:
         assert json.load(f)["status"] == "failed"
 
