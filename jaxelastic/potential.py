@@ -132,7 +132,9 @@ _FIELD_SHAPES = {
 }
 
 
-def _is_array(a) -> bool:
+def is_array(a) -> bool:
+    """Whether ``a`` is an array (has a shape and a dtype): a field a user set, not None, a
+    Python list or one of JAX's placeholders when it rebuilds the pytree."""
     return hasattr(a, "shape") and hasattr(a, "dtype")
 
 
@@ -142,7 +144,7 @@ def _widening_leaves(pot: Potential, mesh_dtype):
     named.append(("contact", pot.contact))
     for name, tree in named:
         for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
-            if not _is_array(leaf) or getattr(leaf, "weak_type", False):
+            if not is_array(leaf) or getattr(leaf, "weak_type", False):
                 continue
             dt = jax.dtypes.canonicalize_dtype(leaf.dtype)
             if jnp.issubdtype(dt, jnp.floating) and jnp.promote_types(dt, mesh_dtype) != mesh_dtype:
@@ -163,12 +165,12 @@ def check_potential(pot: Potential) -> None:
         TypeError: ψ does not return a scalar float (see :func:`~jaxelastic.energy.check_psi`).
     """
     pts: Any = getattr(pot.mesh, "points", None)
-    if not _is_array(pts) or len(pts.shape) != 2 or not _is_array(pot.mesh.cells):
+    if not is_array(pts) or len(pts.shape) != 2 or not is_array(pot.mesh.cells):
         return
     n, d = (int(k) for k in pts.shape)
     for name, (what, expected) in _FIELD_SHAPES.items():
         a = getattr(pot, name)
-        if _is_array(a) and tuple(a.shape) != expected(n, d):
+        if is_array(a) and tuple(a.shape) != expected(n, d):
             raise ValueError(
                 f"Potential: {name} must have shape {what} = {expected(n, d)} for this mesh of "
                 f"{n} nodes in {d}D, got {tuple(a.shape)}"

@@ -147,10 +147,10 @@ class Newton:
                 "so a larger xtol reports SUCCESS for an unconverged solve (the default "
                 "1e-12 only catches a residual stuck at its round-off floor)"
             )
-        if not self.kappa_max_factor >= 1:
-            raise ValueError(f"kappa_max_factor must be >= 1, got {self.kappa_max_factor!r}")
         for name in ("rtol", "atol", "kappa_max_factor"):
             _real(getattr(self, name), name)
+        if not self.kappa_max_factor >= 1:
+            raise ValueError(f"kappa_max_factor must be >= 1, got {self.kappa_max_factor!r}")
         if not (self.rtol >= 0 and self.atol >= 0) or (self.rtol == 0 and self.atol == 0):
             raise ValueError(
                 f"need rtol >= 0 and atol >= 0, not both 0; got rtol={self.rtol!r}, "

@@ -22,7 +22,7 @@ from ..energy import check_psi
 from ..loads import Dirichlet
 from ..materials import Lame, check_lame
 from ..mesh import Mesh
-from ..potential import Potential
+from ..potential import Potential, is_array
 from .adjoint import ImplicitAdjoint, differentiable_minimize
 from .linear import AMG, Direct, bind_linear
 from .newton import Newton, host_minimize, is_quadratic
@@ -67,10 +67,6 @@ def _split_hierarchy(solver: Newton):
     return dataclasses.replace(solver, linear=dataclasses.replace(solver.linear, hierarchy=None)), h
 
 
-def _is_array(a) -> bool:
-    return hasattr(a, "shape") and hasattr(a, "dtype")
-
-
 def _check_inputs(pot: Potential, bc: Dirichlet, x0):
     if not isinstance(pot, Potential):
         raise TypeError(f"pot must be a je.Potential, got {type(pot).__name__}")
@@ -86,7 +82,7 @@ def _check_inputs(pot: Potential, bc: Dirichlet, x0):
         )
     shape = tuple(pot.mesh.points.shape)
     for name, a in (("bc.mask", bc.mask), ("bc.values", bc.values)):
-        if not _is_array(a):
+        if not is_array(a):
             raise TypeError(
                 f"{name} must be an array of shape {shape} (n_nodes, dim), got "
                 f"{type(a).__name__}: build the Dirichlet data with je.loads.fix(mesh, nodes) "
@@ -113,13 +109,13 @@ def _check_inputs(pot: Potential, bc: Dirichlet, x0):
             )
     for name in ("f_ext", "mass", "x_tilde", "x_prev"):
         a = getattr(pot, name)
-        if a is not None and not _is_array(a):
+        if a is not None and not is_array(a):
             raise TypeError(
                 f"pot.{name} must be an array (or None), got {type(a).__name__}: pass "
                 f"jnp.asarray(...) of the right shape"
             )
     dt, vt = jnp.result_type(pot.mesh.points), jnp.result_type(bc.values)
-    if jnp.issubdtype(vt, jnp.floating) and jnp.finfo(vt).bits > jnp.finfo(dt).bits:
+    if jnp.finfo(vt).bits > jnp.finfo(dt).bits:  # (bc.values is floating: checked above)
         raise ValueError(
             f"bc.values has dtype {vt} but the mesh is {dt}: build the Dirichlet data from "
             f"the mesh (je.loads.fix) or cast the values to {dt}"
