@@ -63,8 +63,8 @@ from .solvers import (
     Solution,
     SolveError,
     Status,
-    bind_solver,
     is_traced,
+    prepare_solver,
     solve,
 )
 
@@ -281,7 +281,7 @@ def step(
         bc: Dirichlet data at time ``t + h``.
         integ: :class:`Integrator`.
         solver: :class:`~jaxelastic.solvers.newton.Newton` (under jit with a traced mesh,
-            bind host linear solvers first: :func:`~jaxelastic.solvers.bind_solver`).
+            bind host linear solvers first: :func:`~jaxelastic.solvers.prepare_solver`).
         adjoint: derivative settings of the step's solve.
         warm: optional ``(n_nodes, dim)`` extra initial guess (used if its step potential
             is lower than that of x̃ and x_n).
@@ -291,7 +291,7 @@ def step(
         why).
     """
     _check_dynamic(pot, integ)
-    solver = bind_solver(solver, pot.mesh, bc)
+    solver = prepare_solver(solver, pot.mesh, bc)
     return _advance(pot, state, bc, integ, solver, adjoint, warm)
 
 
@@ -384,7 +384,7 @@ def rollout(
     _check_rollout(n_steps, checkpoint, warm, x_shape)
     observe = _positions if observe is None else observe
     bc_fn = bc if callable(bc) else (lambda t: bc)
-    solver = bind_solver(solver, pot.mesh, bc_fn(state0.t + integ.h))
+    solver = prepare_solver(solver, pot.mesh, bc_fn(state0.t + integ.h))
 
     def body(carry, w):
         st, failed = carry
@@ -505,7 +505,7 @@ def simulate(
     if is_traced(pot, state):
         raise ValueError("simulate is a host loop: call it outside jit (use rollout inside)")
     bc_at = bc if callable(bc) else (lambda t: bc)
-    solver = bind_solver(solver, pot.mesh, bc_at(float(state.t) + integ.h))
+    solver = prepare_solver(solver, pot.mesh, bc_at(float(state.t) + integ.h))
     records: list[dict] = []
     bar = _progress_bar(int(n_steps), progress)
     try:

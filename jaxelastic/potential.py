@@ -58,6 +58,12 @@ __all__ = [
     "projection_dim",
     "mass_diagonal",
     "check_potential",
+    "loop_terms",
+    "with_loop_terms",
+    "has_coupling",
+    "coupling_data",
+    "coupling",
+    "is_array",
 ]
 
 
@@ -373,3 +379,40 @@ def elastic_element_hessians(
             Ke, pot.mesh, x, project=not exact_contact, pair_hessians=pair_hessians
         )
     return Ke
+
+
+# -- terms of the potential that take part in the Newton loop -------------------------------
+
+
+def loop_terms(pot: Potential) -> dict[str, Any]:
+    """The terms of ``pot`` that take part in the Newton loop beyond their energy, by
+    field name: each may bound a step (``step_bound(x, step)``), be refreshed on the host
+    between iterations (``refreshed(x, step)``) and adapt a stiffness inside the solve
+    (``adapt_init`` / ``adapt`` / ``adapted``); today the contact term."""
+    return {} if pot.contact is None else {"contact": pot.contact}
+
+
+def with_loop_terms(pot: Potential, terms: dict[str, Any]) -> Potential:
+    """``pot`` with the given :func:`loop_terms` replaced."""
+    return pot.replace(**terms) if terms else pot
+
+
+def has_coupling(pot: Potential) -> bool:
+    """Whether the Hessian couples nodes of different elements (self-contact pairs), so
+    the Newton operator is more than the assembled element matrix."""
+    return pot.contact is not None and getattr(pot.contact, "self_contact", None) is not None
+
+
+def coupling_data(pot: Potential, x: jax.Array, exact: bool = False):
+    """The per-iterate data of the :func:`coupling` at ``x`` (the self-contact pair
+    Hessians, projected unless ``exact``), or None: computed once, it can be handed from
+    one compiled piece to another."""
+    return None if pot.contact is None else pot.contact.pair_hessians(x, exact=exact)
+
+
+def coupling(pot: Potential, x: jax.Array, data=None, exact: bool = False):
+    """The Hessian's coupling of nodes of different elements as ``v ↦ H_c v``
+    (``(n_nodes, dim) -> (n_nodes, dim)``), or None where there is none."""
+    if pot.contact is None:
+        return None
+    return pot.contact.coupling(x, exact=exact, pair_hessians=data)

@@ -128,7 +128,7 @@ def bench_solver(kind: str, mesh, bc, f_bend, x_obs, repeats: int) -> dict:
     from jaxelastic.materials import Lame, lame
     from jaxelastic.solvers.linear import block_jacobi, cg
 
-    solver = je.solvers.bind_solver(je.Newton(rtol=1e-10, linear=kind), mesh, bc)
+    solver = je.solvers.prepare_solver(je.Newton(rtol=1e-10, linear=kind), mesh, bc)
     X = mesh.points
     scale = jnp.sum((x_obs - X) ** 2)
 

@@ -110,7 +110,7 @@ def communication(pot, bc, linear) -> dict:
     out["cg_scalars_bytes"] = 3 * x.dtype.itemsize
     m_bytes = 0
     if isinstance(linear, je.Multilevel):
-        h, halo = linear.hierarchy, pot.mesh.halo
+        h, halo = je.solvers.init_linear(linear, pot.mesh, bc)[1].hierarchy, pot.mesh.halo
 
         def M1(h, Ke, free, r):
             return sharded_preconditioner(h, halo, Ke, None, free)(r)
@@ -148,7 +148,7 @@ def worker(n: int, solver: str, repeat: int, devices: int = 1, save: str | None 
         pot, bc, part = je.shard(pot, bc, devices=devices)
         mesh = pot.mesh
     t0 = time.perf_counter()
-    linear = je.solvers.bind_linear(_linear(solver), mesh, bc)
+    linear, lstate = je.solvers.init_linear(_linear(solver), mesh, bc)
     setup = time.perf_counter() - t0
     newton = je.Newton(rtol=1e-8, max_steps=50, linear=linear)
     t0 = time.perf_counter()
@@ -162,8 +162,8 @@ def worker(n: int, solver: str, repeat: int, devices: int = 1, save: str | None 
     assert res is not None
     steps = int(res.stats["steps"])
     levels = None
-    if isinstance(linear, je.Multilevel) and linear.hierarchy is not None:
-        levels = linear.hierarchy.describe()
+    if isinstance(linear, je.Multilevel) and lstate.hierarchy is not None:
+        levels = lstate.hierarchy.describe()
     extra = {}
     if part is not None:
         extra = dict(partition=part.stats(), comm=communication(pot, bc, linear))

@@ -74,7 +74,7 @@ def _kernels(b, repeat: int) -> dict:
 
 def _solve(b, linear: str, rtol: float, repeat: int) -> tuple[dict, np.ndarray]:
     """The warm solve time and statistics, and the solution (float64 copy)."""
-    solver = je.solvers.bind_solver(je.Newton(rtol=rtol, linear=linear), b.pot.mesh, b.bc)
+    solver = je.solvers.prepare_solver(je.Newton(rtol=rtol, linear=linear), b.pot.mesh, b.bc)
     t0 = time.perf_counter()
     res = je.solve(b.pot, b.bc, solver=solver, throw=False)
     first = time.perf_counter() - t0

@@ -128,7 +128,7 @@ def worker(n: int, solver: str, element: str = "p1") -> dict:
     map_large_blocks()  # as the jaxelastic command does (docs/guide/linear-solvers.md)
 
     mesh, pot, bc = _twist_problem(n, element)
-    linear = je.solvers.bind_linear(solver, mesh, bc)
+    linear = je.solvers.linear.resolve(solver, mesh, bc)
     kind = type(linear).__name__.lower()  # what "auto" chose
     newton = je.Newton(rtol=1e-8, max_steps=50, linear=linear)
     t0 = time.perf_counter()
@@ -174,7 +174,7 @@ def breakdown_worker(n: int, solver: str, element: str = "p1") -> dict:
     """Where one warm twist solve's time goes, per Newton iteration (host Newton loop).
 
     After a cold solve, one warm solve runs with timing wrappers around the three compiled
-    pieces of :func:`jaxelastic.solvers.newton.host_minimize` (element Hessians + rhs;
+    pieces of :func:`jaxelastic.solvers.newton.minimize`'s Python loop (element Hessians + rhs;
     linear solve; line search + update, each synchronised) and around the host back end's
     calls (assembled data → factorisation / AMG setup; preconditioner or solve
     applications). The linear-solve piece minus the host calls is the device part: the
@@ -184,12 +184,11 @@ def breakdown_worker(n: int, solver: str, element: str = "p1") -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import jaxelastic as je
-    from jaxelastic.solvers import newton as N
+    from jaxelastic.solvers.newton import driver as N
 
     mesh, pot, bc = _twist_problem(n, element)
-    linear = je.solvers.bind_linear(solver, mesh, bc)
-    newton = je.Newton(rtol=1e-8, max_steps=50, linear=linear)
-    host = getattr(linear, "backend", None)
+    newton = je.solvers.prepare_solver(je.Newton(rtol=1e-8, max_steps=50, linear=solver), mesh, bc)
+    host = newton.linear_state.host
     log: list[dict] = []
     cur: dict = {}
 
@@ -205,7 +204,7 @@ def breakdown_worker(n: int, solver: str, element: str = "p1") -> dict:
 
         return wrapped
 
-    pieces = ("_host_system", "_host_linear", "_host_assembled_step", "_host_update")
+    pieces = ("_loop_prepare", "_loop_linear", "_host_linear_step", "_loop_finish")
     orig = {k: getattr(N, k) for k in pieces}
     if host is not None:  # before compiling: the callbacks capture the bound methods
         for meth, name in (
@@ -216,17 +215,17 @@ def breakdown_worker(n: int, solver: str, element: str = "p1") -> dict:
             setattr(host, meth, timed(name, getattr(host, meth), sync=False))
     je.solve(pot, bc, solver=newton, throw=False)  # cold: compile everything
     cur.clear()
-    N._host_system = timed("element_hessians_rhs", orig["_host_system"])
-    N._host_linear = timed("linear_piece", orig["_host_linear"])
-    N._host_assembled_step = timed("linear_piece", orig["_host_assembled_step"])
+    N._loop_prepare = timed("element_hessians_rhs", orig["_loop_prepare"])
+    N._loop_linear = timed("linear_piece", orig["_loop_linear"])
+    N._host_linear_step = timed("linear_piece", orig["_host_linear_step"])
 
     def update(*a, **k):
-        out = timed("line_search_update", orig["_host_update"])(*a, **k)
+        out = timed("line_search_update", orig["_loop_finish"])(*a, **k)
         log.append(dict(cur))
         cur.clear()
         return out
 
-    N._host_update = update
+    N._loop_finish = update
     t0 = time.perf_counter()
     sol = je.solve(pot, bc, solver=newton, throw=False)
     total = time.perf_counter() - t0
@@ -274,7 +273,7 @@ def be_step_worker() -> dict:
         integ = dynamics.Integrator(h=0.02)
         step = jax.jit(dynamics.step, static_argnames=("integ", "solver"))
         # what the default scene uses: "auto", bound once
-        solver = je.Newton(linear=je.solvers.bind_linear("auto", mesh, bc))
+        solver = je.solvers.prepare_solver(je.Newton(), mesh, bc)
         t0 = time.perf_counter()
         st1, r = step(base, st, bc, integ, solver=solver)
         jax.block_until_ready(st1)

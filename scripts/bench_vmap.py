@@ -105,7 +105,7 @@ def run(args) -> dict:
         linear = "multilevel" if hasattr(je, "Multilevel") else "cg"
     mesh, pot, bc = _problem(args.precision)
     dtype = mesh.points.dtype
-    solver = je.solvers.bind_solver(je.Newton(rtol=args.rtol, linear=linear), mesh, bc)
+    solver = je.solvers.prepare_solver(je.Newton(rtol=args.rtol, linear=linear), mesh, bc)
     B = args.batch
     if args.sweep == "nu":
         values = np.linspace(0.2, 0.45, B)

@@ -108,7 +108,7 @@ def _newton(prob: Problem, spec: SolverSpec):
     import jaxelastic as je
 
     linear = je.CG(preconditioner=spec.preconditioner) if spec.linear == "cg" else spec.linear
-    bound = je.solvers.bind_linear(linear, prob.pot.mesh, prob.bc)
+    bound = je.solvers.linear.resolve(linear, prob.pot.mesh, prob.bc)
     return je.Newton(rtol=spec.rtol, max_steps=prob.max_steps, linear=bound)
 
 

@@ -445,7 +445,7 @@ def _run_static(pot, bc, steps, min_increment=1.0 / 256) -> Outcome:
     path = bc if callable(bc) else None
     bc0 = bc(0.0) if callable(bc) else bc
     pot0 = pot if pot.f_ext is None else pot.replace(f_ext=0.0 * pot.f_ext)
-    bound = je.solvers.bind_linear("direct", pot.mesh, bc0)
+    bound = je.solvers.linear.resolve("direct", pot.mesh, bc0)
     solver = _settings(max_steps=60, linear=bound)
     compile_s = _compile_time(
         _warm_key(pot, "static", _settings(max_steps=60)),

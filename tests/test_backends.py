@@ -2,7 +2,7 @@
 device assembly, and linear problems in one Newton step.
 
 Every back end importable here is checked against a dense solve and for detecting
-matrices that are not positive definite (the status that makes ``_Host.newton_step``
+matrices that are not positive definite (the status that makes the Newton step's projected retry
 project and retry); CHOLMOD (scikit-sparse) is tested only where it imports.
 """
 
@@ -79,7 +79,7 @@ def test_backend_detects_indefinite(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_host_indefinite_status_per_backend(backend):
-    """The status ``_Host.newton_step`` acts on, for a FEM matrix, with every back end."""
+    """The status the projected retry acts on, for a FEM matrix, with every back end."""
     mesh = je.box(3, 2, 2)
     X = np.asarray(mesh.points)
     fixed = np.repeat(X[:, 0] == 0.0, 3)
@@ -167,7 +167,7 @@ def test_import_does_not_load_host_packages():
 
 @pytest.mark.parametrize("order", [1, 2])
 def test_device_assembly_equals_host(order):
-    from jaxelastic.solvers.linear import _upper_data  # the callbacks' device assembly
+    from jaxelastic.solvers.linear import assemble_upper  # the device assembly
 
     mesh = je.box(2, 2, 1, order=order)
     X = np.asarray(mesh.points)
@@ -177,7 +177,8 @@ def test_device_assembly_equals_host(order):
     assert host.element_map.dtype == np.int32
     rng = np.random.default_rng(3)
     Ke = rng.standard_normal((mesh.n_cells,) + (mesh.cells.shape[1] * 3,) * 2)
-    dev = np.asarray(jax.jit(lambda K: _upper_data(host, K))(jnp.asarray(Ke)))
+    emap = jnp.asarray(host.element_map)
+    dev = np.asarray(jax.jit(lambda K: assemble_upper(K, emap, host.nnz_upper))(jnp.asarray(Ke)))
     np.testing.assert_allclose(dev, P.upper_data(Ke), rtol=1e-13, atol=1e-13)
     # symmetrisation folded in: the full matrix is (ΣKe + ΣKeᵀ)/2
     full = P.matrix(P.full_data(dev)).toarray()
@@ -235,16 +236,17 @@ def test_auto_keeps_direct_for_quadratic_problems(monkeypatch):
     limit (one factorisation beats an AMG-CG solve there), AMG for a nonlinear one; the
     limits are lowered here so that a small mesh sits between them."""
     from jaxelastic.solvers import linear as L
+    from jaxelastic.solvers.linear import auto
 
     pot, bc = _linear_problem()
     n = pot.mesh.n_dofs
-    monkeypatch.setattr(L, "AUTO_DIRECT_MAX_DOFS", {2: n - 1, 3: n - 1})
-    monkeypatch.setattr(L, "AUTO_DIRECT_MAX_DOFS_QUADRATIC", {2: n, 3: n})
-    assert isinstance(L.bind_linear("auto", pot.mesh, bc), L.AMG)
-    assert isinstance(L.bind_linear("auto", pot.mesh, bc, quadratic=True), L.Direct)
+    monkeypatch.setattr(auto, "AUTO_DIRECT_MAX_DOFS", {2: n - 1, 3: n - 1})
+    monkeypatch.setattr(auto, "AUTO_DIRECT_MAX_DOFS_QUADRATIC", {2: n, 3: n})
+    assert isinstance(L.resolve("auto", pot.mesh, bc), L.AMG)
+    assert isinstance(L.resolve("auto", pot.mesh, bc, quadratic=True), L.Direct)
     # je.solve passes is_quadratic(pot): the linear material solves directly, in one step
     r = je.solve(pot, bc, solver=je.Newton(linear="auto"))
     assert int(r.status) == 0 and int(r.stats["steps"]) == 1
     assert r.stats["linear_iterations"] == 1  # a direct solve (AMG-CG would iterate)
-    monkeypatch.setattr(L, "AUTO_DIRECT_MAX_DOFS_QUADRATIC", {2: n - 1, 3: n - 1})
-    assert isinstance(L.bind_linear("auto", pot.mesh, bc, quadratic=True), L.AMG)
+    monkeypatch.setattr(auto, "AUTO_DIRECT_MAX_DOFS_QUADRATIC", {2: n - 1, 3: n - 1})
+    assert isinstance(L.resolve("auto", pot.mesh, bc, quadratic=True), L.AMG)

@@ -28,9 +28,10 @@ SMALL = [
     "output.vtu=false",
 ]
 
-# the compiled pieces of the Newton solve (jaxelastic.solvers.newton.host_minimize) and of
-# the time step (jaxelastic.dynamics.simulate) that the cache must hold
-NEWTON = ("_host_start", "_host_system", "_host_update")
+# the compiled pieces of the Newton solve (the Python loop of
+# jaxelastic.solvers.newton.minimize) and of the time step (jaxelastic.dynamics.simulate)
+# that the cache must hold
+NEWTON = ("_loop_start", "_loop_prepare", "_loop_finish")
 STEP = ("_prepare_step", "_finish_step")
 
 

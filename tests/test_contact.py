@@ -391,7 +391,7 @@ def test_kappa_adaptation_rescues_an_overloaded_contact():
     sol = je.solve(pot, bc, solver=newton.replace(kappa_max_factor=100))
     ratio = float(sol.stats["kappa"] / pot.contact.kappa)
     assert 2 <= ratio <= 100 and float(pot.contact.min_distance(sol.x)) > 0
-    adapted = je.solvers.contact_potential(pot, sol).contact
+    adapted = je.solvers.solved_potential(pot, sol).contact
     weight = -float(f[:, 1].sum())
     total = float(adapted.forces(sol.x).sum(axis=0)[1])
     assert abs(total - weight) <= 1e-5 * weight, (total, weight)

@@ -20,7 +20,7 @@ from jaxelastic import Newton, Status
 from jaxelastic import dynamics as D
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic.solvers import bind_linear
+from jaxelastic.solvers import linear as linear_solvers
 
 MU, LAM = (float(v) for v in M.lame(1.0e4, 0.3))
 PARAMS = M.Lame(MU, LAM)
@@ -244,8 +244,8 @@ def test_rollout_under_jit_matches_simulate(mesh, base):
         callback=lambda s, r, rec: xs.append(np.asarray(s.x)),
     )
     # the same linear solver as simulate's default (sparse Cholesky through a callback)
-    linear = bind_linear("auto", mesh, bc(0.0))
-    assert isinstance(linear, je.Direct) and linear.is_bound
+    linear = linear_solvers.resolve("auto", mesh, bc(0.0))
+    assert isinstance(linear, je.Direct)
     roll = jax.jit(D.rollout, static_argnames=("bc", "integ", "n_steps", "solver"))
     final, traj = roll(base, st0, bc, BE, 12, solver=SETTINGS.replace(linear=linear))
     assert (np.asarray(traj.status) == Status.SUCCESS).all()

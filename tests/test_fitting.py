@@ -218,7 +218,7 @@ def test_warm_start_and_direct_solver_agree(beam2):
     g_cold = grad(th, b.mesh.points, cg)
     x_warm = _x(b.pot(M.Lame(*M.lame(1.1 * E_MOD, NU, dim=2))), b.bc)
     g_warm = grad(th, x_warm, cg)
-    direct = je.solvers.bind_solver(je.Newton(rtol=1e-12, linear="direct"), b.mesh, b.bc)
+    direct = je.solvers.prepare_solver(je.Newton(rtol=1e-12, linear="direct"), b.mesh, b.bc)
     g_direct = grad(th, b.mesh.points, direct)
     np.testing.assert_allclose(g_warm, g_cold, rtol=1e-8)
     np.testing.assert_allclose(g_direct, g_cold, rtol=1e-8)

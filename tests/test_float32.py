@@ -193,8 +193,8 @@ def test_float32_fit_scene_is_refused_before_anything_runs(tmp_path):
 def test_linear_solver_name_reads_the_bound_object():
     mesh = je.rectangle(4, 2)
     bc = L.fix(mesh, L.nodes_on_plane(mesh, 0, 0.0))
-    assert linear_solver_name(je.solvers.bind_linear("cg", mesh, bc)) == "cg (block_jacobi)"
-    name = linear_solver_name(je.solvers.bind_linear("direct", mesh, bc))
+    assert linear_solver_name(je.solvers.linear.resolve("cg", mesh, bc)) == "cg (block_jacobi)"
+    name = linear_solver_name(*je.solvers.init_linear("direct", mesh, bc))
     assert name.startswith("direct (") and name.endswith(")")
 
 

@@ -69,9 +69,10 @@ class Beam:
         return je.Potential(mesh=self.mesh, params=params, f_ext=f, mass=mass, psi=M.neo_hookean)
 
     def linear(self, kind):
-        """One bound host solver per kind (its ``backend`` counters are this beam's)."""
+        """``(settings, state)`` of one host solver per kind (the state's host back end
+        counts this beam's factorisations)."""
         if kind not in self._linear:
-            self._linear[kind] = je.solvers.bind_linear(kind, self.mesh, self.bc)
+            self._linear[kind] = je.solvers.init_linear(kind, self.mesh, self.bc)
         return self._linear[kind]
 
 
@@ -199,9 +200,9 @@ def test_host_adjoint_matches_cg_and_reuses_factorisation(host_beam):
     g_cg = jax.jit(jax.grad(lambda t: _tip_loss(host_beam, t, TIGHT)))(th)
     pullback = jax.jit(lambda vjp, ct: vjp(ct))
     for kind in ("direct", "amg"):
-        lin = host_beam.linear(kind)
+        lin, state = host_beam.linear(kind)
         solver = TIGHT.replace(linear=lin)
-        host = lin.backend
+        host = state.host
         f0 = host.factorizations
         _, vjp = jax.jit(lambda t, s=solver: jax.vjp(lambda u: _tip_loss(host_beam, u, s), t))(th)
         f1, a1 = host.factorizations, host.applications
@@ -215,13 +216,13 @@ def test_host_adjoint_matches_cg_and_reuses_factorisation(host_beam):
 
 def test_linear_solver_resolution_under_jit(beam):
     """With the mesh traced (the potential is a jit argument) "auto" resolves to CG and
-    gives the concrete solve's x*; unbound host solvers raise a ValueError that names
-    bind_linear."""
+    gives the concrete solve's x*; host solvers without a state made outside jit raise a
+    ValueError that names init_linear."""
     pot = beam.pot(_lame(E_MOD))
     seen = []
 
     def x_of(p, linear):
-        seen.append(je.solvers.bind_linear(linear, p.mesh, beam.bc))
+        seen.append(je.solvers.linear.resolve(linear, p.mesh, beam.bc))
         return _xs(p, beam.bc, solver=TIGHT.replace(linear=linear))
 
     x_auto = jax.jit(x_of, static_argnums=1)(pot, "auto")
@@ -229,7 +230,7 @@ def test_linear_solver_resolution_under_jit(beam):
     x_ref = je.solve(pot, beam.bc, solver=je.Newton(rtol=1e-12)).x  # concrete: Direct
     np.testing.assert_allclose(x_auto, x_ref, rtol=0, atol=1e-10)
     for linear in (je.Direct(), je.AMG(), "direct"):
-        with pytest.raises(ValueError, match="bind_linear"):
+        with pytest.raises(ValueError, match="init_linear"):
             jax.jit(x_of, static_argnums=1)(pot, linear)
 
 
@@ -459,8 +460,8 @@ def test_forward_mode_with_host_solver(host_beam):
     direct solver (one host-preconditioned adjoint per Jacobian column, applied
     sequentially) equal the matrix-free reverse-mode Jacobian; the Jacobians factorise at
     most once beyond the forward Newton solve."""
-    lin = host_beam.linear("direct")
-    host = lin.backend
+    lin, state = host_beam.linear("direct")
+    host = state.host
 
     def xs(th, linear, adjoint):
         solver = TIGHT.replace(linear=linear)
@@ -489,8 +490,8 @@ def test_checkpoint_recomputation_counts(host_beam):
     ``"step"`` checkpointing saves the Newton solutions (no re-solve: as many as without
     checkpointing), segments re-solve each step once in the reverse sweep; every adjoint
     uses the host back end, and the gradients agree."""
-    lin = host_beam.linear("direct")
-    host = lin.backend
+    lin, state = host_beam.linear("direct")
+    host = state.host
     solver = je.Newton(rtol=1e-10, atol=1e-12, linear=lin)
     counts, grads = {}, {}
     for ck in (None, "step", 5):

@@ -48,7 +48,7 @@ tight = je.Newton(rtol=1e-12)
 x_cg = je.solve(pot, bc, solver=tight.replace(linear=je.CG())).x
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("default")
-    bound = je.solvers.bind_linear("auto", mesh, bc)
+    bound = je.solvers.linear.resolve("auto", mesh, bc)
     r1 = je.solve(pot, bc, solver=tight)  # "auto"
     r2 = je.solve(pot, bc, solver=tight)
 fallback = [str(w.message) for w in caught if "linear='auto'" in str(w.message)]

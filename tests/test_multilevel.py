@@ -38,11 +38,10 @@ def beam():
 
 def test_hierarchy_has_levels_and_binds_once(beam):
     mesh, bc, _ = beam
-    a = je.solvers.bind_linear(ML, mesh, bc)
-    b = je.solvers.bind_linear("multilevel", mesh, bc)
+    a = je.solvers.init_linear(ML, mesh, bc)[1]
+    b = je.solvers.init_linear("multilevel", mesh, bc)[1]
     assert len(a.hierarchy.sizes) >= 3 and a.hierarchy.sizes[0] == mesh.n_dofs
-    assert a.is_bound and not ML.is_bound
-    assert je.solvers.bind_linear(ML, mesh, bc).hierarchy is a.hierarchy  # cached setup
+    assert je.solvers.init_linear(ML, mesh, bc)[1].hierarchy is a.hierarchy  # cached setup
     assert b.hierarchy is not a.hierarchy  # other max_coarse, other hierarchy
     with pytest.raises(ValueError, match="coarse_scale"):
         je.Multilevel(coarse_scale=2.5)
@@ -71,7 +70,7 @@ def test_vmap_over_material_and_gradient(beam):
     """vmap over E gives the separate solves; the implicit gradient (adjoint solve by
     Multilevel.exact) matches a central difference."""
     mesh, bc, f = beam
-    newton = je.Newton(linear=je.solvers.bind_linear(ML, mesh, bc), **TIGHT)
+    newton = je.Newton(linear=ML, **TIGHT)
 
     def tip(E, solver=newton):
         return je.solve(_pot(mesh, f, E), bc, solver=solver).x[-1, 1]
@@ -193,12 +192,12 @@ def test_projected_upper_by_blocks(beam, monkeypatch):
     the upper data of projecting every cell, to round-off; cells that pass the test are
     the positive semidefinite ones."""
     from jaxelastic.energy import project_psd
-    from jaxelastic.solvers import newton as N
     from jaxelastic.solvers.linear import assemble_upper
+    from jaxelastic.solvers.newton import retry as N
 
     mesh, bc, f = beam
     pot = _pot(mesh, f, 1e3)
-    host = je.solvers.bind_linear("direct", mesh, bc).backend
+    host = je.solvers.init_linear("direct", mesh, bc)[1].host
     K_in = je.element_hessians(pot.psi, _compressed_start(mesh, bc), mesh, pot.params)
     K_rest = je.element_hessians(pot.psi, mesh.points, mesh, pot.params)
     half = np.arange(mesh.n_cells) < mesh.n_cells // 2  # PSD cells and indefinite ones
@@ -208,21 +207,21 @@ def test_projected_upper_by_blocks(beam, monkeypatch):
     monkeypatch.setattr(N, "PROJECT_BLOCK_CELLS", 7)
     assert mesh.n_cells % 7 != 0  # tail blocks
     bad = np.concatenate(
-        [np.asarray(N._not_psd(Ke, s, min(7, mesh.n_cells - s))) for s in range(0, mesh.n_cells, 7)]
+        [np.asarray(N.not_psd(Ke, s, min(7, mesh.n_cells - s))) for s in range(0, mesh.n_cells, 7)]
     )
     lam_min = np.linalg.eigvalsh(np.asarray(Ke))[:, 0]
     scale = np.abs(np.diagonal(np.asarray(Ke), axis1=1, axis2=2)).max(axis=1)
     assert 0 < bad.sum() < mesh.n_cells  # both kinds of cells in this start
     assert np.all(lam_min[~bad] >= -1e-10 * scale[~bad]) and np.all(lam_min[bad] < 0)
     data = assemble_upper(Ke, emap, host.nnz_upper)
-    got = N._projected_upper(data, Ke, host.element_map, host.nnz_upper, 0)
+    got = N.projected_upper(data, Ke, host.element_map, host.nnz_upper, 0)
     # elasticity alone: through the matrices without translations, the same to round-off
     data = assemble_upper(Ke, emap, host.nnz_upper)  # (the first call donated it)
-    got_dim = N._projected_upper(data, Ke, host.element_map, host.nnz_upper, mesh.dim)
+    got_dim = N.projected_upper(data, Ke, host.element_map, host.nnz_upper, mesh.dim)
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * float(jnp.abs(ref).max()))
     np.testing.assert_allclose(got_dim, ref, rtol=0, atol=1e-9 * float(jnp.abs(ref).max()))
     # most of the first block failing: every cell projected, untested; the same result
     monkeypatch.setattr(N, "PROJECT_ALL_FRACTION", -1.0)
     data = assemble_upper(Ke, emap, host.nnz_upper)
-    got_all = N._projected_upper(data, Ke, host.element_map, host.nnz_upper, mesh.dim)
+    got_all = N.projected_upper(data, Ke, host.element_map, host.nnz_upper, mesh.dim)
     np.testing.assert_allclose(got_all, ref, rtol=0, atol=1e-9 * float(jnp.abs(ref).max()))

@@ -44,8 +44,8 @@ def tw():
     Ke_s = jax.device_put(
         part.to_padded(np.asarray(Ke), kind="cells", fill=0.0), pot_s.mesh.halo.sharding()
     )
-    one = je.solvers.bind_linear(ML, b.mesh, b.bc)
-    many = je.solvers.bind_linear(ML, pot_s.mesh, bc_s)
+    one = je.solvers.init_linear(ML, b.mesh, b.bc)[1]
+    many = je.solvers.init_linear(ML, pot_s.mesh, bc_s)[1]
     return b, pot_s, bc_s, part, Ke, Ke_s, one, many
 
 
@@ -62,7 +62,7 @@ def test_same_hierarchy_as_one_device(tw):
             assert np.array_equal(np.asarray(getattr(a, f)), np.asarray(getattr(c, f))), f
     T_own = np.asarray(sh.T)[:, : sh.n_own].reshape(-1, 3, 6)
     assert np.array_equal(part.to_natural(T_own), np.asarray(h.levels[0].T))
-    assert je.solvers.bind_linear(ML, pot_s.mesh, bc_s).hierarchy is sh  # cached setup
+    assert je.solvers.init_linear(ML, pot_s.mesh, bc_s)[1].hierarchy is sh  # cached setup
     assert "sharded" in repr(sh)
 
 
@@ -167,7 +167,7 @@ def test_one_level_is_a_dense_solve():
     factorised densely, M⁻¹ is the exact inverse, as on one device."""
     b = twist(3)
     pot_s, bc_s, part = je.shard(b.pot, b.bc, devices=S, method="sfc")
-    sh = je.solvers.bind_linear(je.Multilevel(), pot_s.mesh, bc_s).hierarchy
+    sh = je.solvers.init_linear(je.Multilevel(), pot_s.mesh, bc_s)[1].hierarchy
     assert isinstance(sh, ShardedHierarchy) and sh.coarse == ()
     X = jnp.asarray(b.mesh.points)
     Ke = pm.elastic_element_hessians(b.pot, X + 0.03 * jnp.cos(2.0 * X), True)
@@ -188,7 +188,7 @@ def test_one_level_is_a_dense_solve():
 def test_refusals(tw):
     b, pot_s, bc_s, _, _, _, one, _ = tw
     with pytest.raises(ValueError, match="smooth=True"):
-        je.solvers.bind_linear(je.Multilevel(smooth=True), pot_s.mesh, bc_s)
+        je.solvers.init_linear(je.Multilevel(smooth=True), pot_s.mesh, bc_s)
     with pytest.raises(ValueError, match="bound to a one-device mesh"):
         je.solve(pot_s, bc_s, solver=je.Newton(linear=one))
 

@@ -498,7 +498,7 @@ for lin in ("cg", "direct"):
 
 
 def _turned_square(rect):
-    """``(pot, bc, bound Newton)``: a neo-Hookean square whose right edge is turned by
+    """``(pot, bc, prepared solver)``: a neo-Hookean square whose right edge is turned by
     1 rad about its midpoint (too large a Dirichlet motion for one step: cutbacks)."""
 
     def turn(X, theta=1.0):
@@ -508,51 +508,51 @@ def _turned_square(rect):
     left = L.fix(rect, L.nodes_on_plane(rect, 0, 0.0))
     bc = L.combine(left, L.fix(rect, L.nodes_on_plane(rect, 0, 1.0), displacement=turn))
     pot = je.Potential(mesh=rect, params=PARAMS, psi=M.neo_hookean)
-    return pot, bc, je.solvers.bind_solver(Newton(rtol=1e-10, linear="direct"), rect, bc)
+    return pot, bc, je.solvers.prepare_solver(Newton(rtol=1e-10, linear="direct"), rect, bc)
 
 
-def test_jitted_and_host_newton_drivers_take_the_same_iterates(rect):
-    """``Newton.minimize`` (``_run``: the loop under ``lax.while_loop``, what ``solve`` runs
-    under jit and for device linear solvers) and ``newton.host_minimize`` (the loop in
-    Python over three compiled pieces, what ``solve`` runs for host linear solvers) share
-    ``_iteration_end`` but not their glue. On a solve with line-search cutbacks (a
+def test_traced_and_python_newton_loops_take_the_same_iterates(rect):
+    """The one Newton loop runs under ``lax.while_loop`` when traced (here: ``jit`` of
+    ``minimize``, the host solve a callback) and in Python over compiled pieces for
+    concrete inputs with a host linear solver. On a solve with line-search cutbacks (a
     neo-Hookean square whose right edge is turned by 1 rad about its midpoint: too large a
     Dirichlet motion for one step), both reach every iterate with the same energy,
     residual, step length and linear iterations, and the same answer and statistics."""
     from jaxelastic.solvers import newton as N
+    from jaxelastic.solvers.results import RUNNING
 
-    pot, bc, s = _turned_square(rect)
+    pot, bc, prep = _turned_square(rect)
+    s, ls = prep.newton, prep.linear_state
     x0 = rect.points
+    assert N.runs_on_host(s, pot)
 
-    # iterate by iterate: the while_loop's body (jitted) vs the host pieces
-    body = jax.jit(N._iteration, static_argnums=0)
-    c_jit = jax.jit(N._initial_carry, static_argnums=0)(s, pot, bc, x0)
-    c_host, length = N._host_start(s, pot, bc, x0)
-    energies = [float(c_jit["energy"])]
-    while int(c_jit["status"]) == N.RUNNING:
-        assert int(c_host["status"]) == N.RUNNING
-        c_jit = body(s, pot, bc, c_jit, length)
-        Ke, rhs, tol, bn, ph = N._host_system(s, pot, bc, c_host)
-        lin = N._host_linear(s, pot, bc, c_host["x"], Ke, rhs, tol, ph)
-        c_host = N._host_update(s, pot, bc, c_host, length, Ke, bn, lin, ph)
-        k = int(c_jit["k"])
-        assert int(c_host["k"]) == k and int(c_host["status"]) == int(c_jit["status"]), k
-        assert int(c_host["cuts"]) == int(c_jit["cuts"]), k
-        np.testing.assert_allclose(c_host["energy"], c_jit["energy"], rtol=1e-12, err_msg=k)
-        np.testing.assert_allclose(c_host["hist"][k], c_jit["hist"][k], rtol=1e-7, err_msg=k)
-        np.testing.assert_allclose(c_host["x"], c_jit["x"], rtol=0, atol=1e-12, err_msg=k)
-        assert float(c_host["alpha_hist"][k - 1]) == float(c_jit["alpha_hist"][k - 1]), k
-        energies.append(float(c_jit["energy"]))
-    assert int(c_jit["status"]) == Status.SUCCESS and int(c_jit["cuts"]) >= 1
+    # iterate by iterate: the traced step (jitted) vs the Python loop stopped after k steps
+    step = jax.jit(N.step, static_argnums=0)
+    st = jax.jit(N.init, static_argnums=0)(s, pot, bc, x0)
+    length = jnp.sqrt(jnp.sum((x0.max(0) - x0.min(0)) ** 2))
+    energies = [float(st.energy)]
+    while int(st.status) == RUNNING:
+        st = step(s, ls, pot, bc, st, length)
+        k = int(st.k)
+        host = N.minimize(s.replace(max_steps=k), ls, pot, bc, x0)
+        assert int(host.stats["steps"]) == k
+        if int(st.status) != RUNNING:
+            assert int(host.status) == int(st.status), k
+        assert int(host.stats["line_search_cutbacks"]) == int(st.cuts), k
+        np.testing.assert_allclose(host.stats["energy"], st.energy, rtol=1e-12, err_msg=k)
+        np.testing.assert_allclose(host.x, st.x, rtol=0, atol=1e-12, err_msg=k)
+        assert float(host.stats["step_history"][k - 1]) == float(st.alpha_hist[k - 1]), k
+        energies.append(float(st.energy))
+    assert int(st.status) == Status.SUCCESS and int(st.cuts) >= 1
     # Π rises while the Dirichlet motion is applied (step 1), then decreases
     assert len(energies) >= 5 and np.all(np.diff(energies[1:-2]) < 0), energies
 
-    # the whole drivers: their Solutions agree field by field
-    a = jax.jit(Newton.minimize, static_argnums=0)(s, pot, bc, x0)
-    b = N.host_minimize(s, pot, bc, x0)
+    # the whole loops: their Solutions agree field by field
+    a = jax.jit(N.minimize, static_argnums=0)(s, ls, pot, bc, x0)
+    b = N.minimize(s, ls, pot, bc, x0)
     assert int(a.status) == int(b.status) == Status.SUCCESS
     np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(b.x, c_jit["x"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.x, st.x, rtol=0, atol=1e-12)
     for key in ("steps", "linear_iterations", "line_search_cutbacks", "negative_curvature"):
         assert int(a.stats[key]) == int(b.stats[key]), key
     np.testing.assert_array_equal(a.stats["linear_history"], b.stats["linear_history"])
@@ -568,19 +568,48 @@ def test_jitted_and_host_newton_drivers_take_the_same_iterates(rect):
     assert n == len(energies)
 
 
+@pytest.mark.parametrize("linear", ["direct", "cg"])
+def test_differentiated_solve_takes_the_plain_solves_path(rect, linear, monkeypatch):
+    """An eager ``jax.grad`` through ``je.solve`` runs the same Newton loop, on the same
+    concrete values, as the plain solve: the whole loop compiled as one program for a
+    device solver (CG), the Python loop for a host one (Direct), never the traced loop
+    with callbacks; the same iterates either way."""
+    from jaxelastic.solvers.newton import driver
+
+    pot, bc, _ = _turned_square(rect)
+    solver = Newton(rtol=1e-10, linear=linear)
+    calls = []
+    for name in ("solve_jit", "_python_loop"):
+        orig = getattr(driver, name)
+        monkeypatch.setattr(driver, name, lambda *a, _o=orig, _n=name: calls.append(_n) or _o(*a))
+    plain = je.solve(pot, bc, solver=solver)
+    first = list(calls)
+
+    def loss(mu):
+        p = pot.replace(params=PARAMS._replace(mu=mu))
+        return jnp.sum(je.solve(p, bc, solver=solver).x ** 2)
+
+    g = jax.grad(loss)(PARAMS.mu)
+    assert np.isfinite(float(g))
+    assert first == [("solve_jit" if linear == "cg" else "_python_loop")]
+    assert calls == first + first  # the differentiated solve took the same path
+    again = je.solve(pot, bc, solver=solver)
+    np.testing.assert_array_equal(again.x, plain.x)
+
+
 def test_first_line_search_trial_outside_the_loop_changes_nothing(rect, monkeypatch):
     """Large meshes (``STRAIGHT_TRIAL_MIN_CELLS``) try α = 1 before the line search's
     while loop, small ones inside it: the same iterates, cutbacks and answer either way
-    (a solve with cutbacks: the square's right edge turned by 1 rad; the host driver, which
-    shares ``_line_search`` with the jitted one, see the test above)."""
+    (a solve with cutbacks: the square's right edge turned by 1 rad)."""
     from jaxelastic.solvers import newton as N
+    from jaxelastic.solvers.newton import iteration
 
-    pot, bc, s = _turned_square(rect)
+    pot, bc, prep = _turned_square(rect)
     out = []
     for threshold in (0, 1 << 62):  # outside the loop, then inside
-        monkeypatch.setattr(N, "STRAIGHT_TRIAL_MIN_CELLS", threshold)
+        monkeypatch.setattr(iteration, "STRAIGHT_TRIAL_MIN_CELLS", threshold)
         jax.clear_caches()  # (the constant is read when tracing)
-        out.append(N.host_minimize(s, pot, bc, rect.points))
+        out.append(N.minimize(prep.newton, prep.linear_state, pot, bc, rect.points))
     jax.clear_caches()
     sol, ref = out
     assert int(ref.status) == Status.SUCCESS and int(ref.stats["line_search_cutbacks"]) >= 1

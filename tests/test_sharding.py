@@ -265,8 +265,8 @@ def test_host_solvers_refuse_quickly(tw):
     # the XLA layout without a halo is refused too
     plain = pot_s.replace(mesh=dataclasses.replace(pot_s.mesh, halo=None))
     with pytest.raises(ValueError, match="multilevel"):
-        je.solvers.bind_linear("direct", plain.mesh, bc_s)
-    assert not isinstance(je.solvers.bind_linear("auto", pot_s.mesh, bc_s), je.Direct)
+        je.solvers.linear.resolve("direct", plain.mesh, bc_s)
+    assert not isinstance(je.solvers.linear.resolve("auto", pot_s.mesh, bc_s), je.Direct)
 
 
 def test_shard_errors(tw):

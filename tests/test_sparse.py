@@ -749,7 +749,7 @@ jax.config.update("jax_enable_x64", True)
 import jaxelastic as je
 from jaxelastic import benchmarks
 b = benchmarks.twist(int(sys.argv[1]))
-newton = je.Newton(rtol=1e-8, linear=je.solvers.bind_linear("direct", b.mesh, b.bc))
+newton = je.solvers.prepare_solver(je.Newton(rtol=1e-8, linear="direct"), b.mesh, b.bc)
 for _ in range(2):  # cold and warm, as a scene's static solve then a time step
     r = je.solve(b.pot, b.bc, solver=newton, throw=False)
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024

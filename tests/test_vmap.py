@@ -65,7 +65,7 @@ def strip():
 
 def _solver(strip, linear):
     newton = je.Newton(rtol=1e-12, linear=linear)
-    return je.solvers.bind_solver(newton, strip.mesh, strip.bc0)  # multilevel: setup once
+    return je.solvers.prepare_solver(newton, strip.mesh, strip.bc0)  # multilevel: setup once
 
 
 @pytest.fixture(scope="module", params=PARAMS)

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..energy import project_psd
-from .barrier import barrier, barrier_d1
+from .barrier import barrier, barrier_d1, kappa_update
 from .ccd import ccd_step, safe_norm
 from .friction import FrictionLag, friction_node_energy, tangent_basis
 from .pair_friction import PairFrictionLag, lag_pair_friction
@@ -253,6 +253,47 @@ class Contact:
             a = jnp.minimum(a, self.self_contact.ccd_step(x, step))
             a = jnp.maximum(a, jnp.finfo(x.dtype).tiny)
         return a
+
+    # -- the Newton loop's term protocol (jaxelastic.solvers.newton.terms) ----------------
+    def step_bound(self, x: jax.Array, step: jax.Array) -> jax.Array:
+        """The line search's starting fraction of ``step``: :meth:`ccd_step`."""
+        return self.ccd_step(x, step)
+
+    @property
+    def host_refresh(self) -> bool:
+        """Whether the Newton loop should refresh this term on the host between
+        iterations (:meth:`refreshed`): with self-contact, whose broad phase is host work."""
+        return self.self_contact is not None
+
+    def adapt_init(self, x: jax.Array, max_factor: float):
+        """The state of IPC's in-solve κ adaptation (:func:`~.barrier.kappa_update`) from
+        ``x``: κ, its cap ``max_factor·κ`` and the smallest gap."""
+        k0 = jnp.asarray(self.kappa, x.dtype)
+        return dict(kappa=k0, kappa_max=k0 * max_factor, gap=self.min_distance(x).astype(x.dtype))
+
+    def adapt(self, state: dict, x: jax.Array):
+        """``(state, changed)`` after an accepted iterate ``x``: κ doubled (up to its cap)
+        while the smallest gap is below ``SMALL_GAP·d̂`` and still shrinking."""
+        gap = self.min_distance(x)
+        kappa = kappa_update(state["kappa"], state["kappa_max"], gap, state["gap"], self.dhat)
+        return dict(state, kappa=kappa, gap=gap), kappa != state["kappa"]
+
+    def adapted(self, state: dict) -> Contact:
+        """This contact at the adapted κ of ``state``."""
+        return self.replace(kappa=state["kappa"])
+
+    @staticmethod
+    def adapt_stats(state: dict) -> dict:
+        """What a solve reports of the adaptation: ``kappa``."""
+        return dict(kappa=state["kappa"])
+
+    def solved(self, stats: dict) -> Contact:
+        """This contact at the κ a solve ended with (``stats["kappa"]``; the ratio is a
+        constant, so derivatives with respect to κ pass through)."""
+        if "kappa" not in stats:
+            return self
+        ratio = jax.lax.stop_gradient(stats["kappa"] / self.kappa)
+        return self.replace(kappa=self.kappa * ratio)
 
     # -- self-contact broad phase (host) -----------------------------------------------
     def refreshed(self, x, step=None, force: bool = False) -> Contact:

@@ -6,7 +6,7 @@ The case protocol (:class:`Case`; :func:`~jaxelastic.fitting.fit` needs nothing 
 * ``mesh``: the rest mesh (region labels and the default regularisation graph refer to it);
 * ``initial_warm() -> W``: a pytree of arrays, the first Newton initial guess(es);
 * ``bind(solver) -> Newton``: the solver with its linear solver bound to this case's mesh
-  and Dirichlet pattern (:func:`jaxelastic.solvers.bind_solver`), called once outside jit;
+  and Dirichlet pattern (:func:`jaxelastic.solvers.prepare_solver`), called once outside jit;
 * ``evaluate(params, warm, solver, adjoint) -> (loss, CaseAux)``: the unweighted scalar
   misfit at the ψ parameters ``params``, pure, jit-able and reverse-mode differentiable
   (:func:`jaxelastic.solve` / :func:`jaxelastic.dynamics.rollout` differentiate by the
@@ -26,7 +26,7 @@ import numpy as np
 from ..dynamics import Integrator, State, rollout
 from ..loads import Dirichlet
 from ..potential import Potential
-from ..solvers import ImplicitAdjoint, Newton, Status, bind_solver, solve
+from ..solvers import ImplicitAdjoint, Newton, Status, prepare_solver, solve
 from .observations import observation_loss
 
 __all__ = ["Case", "CaseAux", "LoadCase", "TrajectoryCase"]
@@ -103,7 +103,7 @@ class LoadCase(Case):
 
     def bind(self, solver: Newton) -> Newton:
         """``solver`` with its linear solver bound to this mesh and Dirichlet pattern."""
-        return bind_solver(solver, self.pot.mesh, self.bc)
+        return prepare_solver(solver, self.pot.mesh, self.bc)
 
     def evaluate(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):
         """(unweighted loss, :class:`CaseAux`) at ψ parameters ``params``."""
@@ -183,7 +183,7 @@ class TrajectoryCase(Case):
 
     def bind(self, solver: Newton) -> Newton:
         """``solver`` with its linear solver bound to this mesh and Dirichlet pattern."""
-        return bind_solver(solver, self.pot.mesh, self.bc)
+        return prepare_solver(solver, self.pot.mesh, self.bc)
 
     def evaluate(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):
         """``(loss, CaseAux)`` at ψ parameters ``params`` (pure, jit-able, differentiable)."""

@@ -40,7 +40,7 @@ def _named_optimizer(name: str, learning_rate: float):
     raise ValueError(f"optimizer must be 'lbfgs', 'adam' or an optax transformation, got {name!r}")
 
 
-@functools.cache
+@functools.lru_cache(maxsize=16)
 def _update_fn(optimizer):
     return jax.jit(optimizer.update)
 

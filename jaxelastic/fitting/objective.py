@@ -48,12 +48,12 @@ def _total(z, pz: Parametrization, cases, warms, solvers, adjoint):
     return pz.penalty(z) + loss, auxs
 
 
-@functools.partial(jax.jit, static_argnums=(4, 5))
+@functools.partial(jax.jit, static_argnums=(5,))
 def _value_and_grad(z, pz, cases, warms, solvers, adjoint):
     return jax.value_and_grad(_total, has_aux=True)(z, pz, cases, warms, solvers, adjoint)
 
 
-_forward = jax.jit(_cases_loss, static_argnums=(3, 4))
+_forward = jax.jit(_cases_loss, static_argnums=(4,))
 
 
 def cases_loss(params, cases, warms, solvers, adjoint):
@@ -61,14 +61,16 @@ def cases_loss(params, cases, warms, solvers, adjoint):
 
     Args:
         params: ψ parameter pytree; cases: tuple of cases; warms: tuple of warm starts;
-        solvers: tuple of bound Newton solvers (one per case, :func:`bind_solvers`);
+        solvers: tuple of prepared solvers (one per case, :func:`bind_solvers`; a pytree
+            argument: their linear-solver states are traced, their settings static);
         adjoint: :class:`~jaxelastic.solvers.ImplicitAdjoint`.
     """
     return _forward(params, tuple(cases), tuple(warms), tuple(solvers), adjoint)
 
 
 def bind_solvers(cases, solver: Newton) -> tuple:
-    """One Newton solver per case, its linear solver bound to the case (outside jit)."""
+    """One :class:`~jaxelastic.solvers.PreparedSolver` per case: the Newton settings with
+    the linear solver's state for the case's mesh and mask (outside jit)."""
     return tuple(c.bind(solver) for c in cases)
 
 

@@ -43,7 +43,7 @@ from ..mesh import (
 )
 from ..mesh.elements import edge_table
 from ..potential import Potential
-from ..solvers import CG, Newton, bind_solver
+from ..solvers import CG, Newton, prepare_solver
 from ..solvers.newton import is_quadratic
 from . import memory
 from .callables import CallableSpecError, import_callable, n_positional
@@ -682,9 +682,9 @@ def newton_of(s: SolverSpec) -> Newton:
     )
 
 
-def linear_solver_name(linear) -> str:
-    """What a bound linear solver is, for the summary: its kind and, where it has one, the
-    back end it resolved to (``"direct (cholespy)"``, ``"amg (pyamg)"``, ``"cg
+def linear_solver_name(linear, state=None) -> str:
+    """What a linear solver is, for the summary: its kind and, where its state
+    (:class:`~jaxelastic.solvers.LinearState`) has one, the back end it resolved to (``"direct (cholespy)"``, ``"amg (pyamg)"``, ``"cg
     (block_jacobi)"``); read from the object's attributes, so a new back end is named
     without a change here."""
     if isinstance(linear, str):
@@ -692,7 +692,7 @@ def linear_solver_name(linear) -> str:
     kind = str(getattr(linear, "kind", type(linear).__name__.lower()))
     if isinstance(linear, CG):
         return f"cg ({linear.preconditioner})"
-    host = getattr(linear, "backend", None)  # HostLinearSolver of a bound Direct / AMG
+    host = None if state is None else state.host  # HostLinearSolver of Direct / AMG
     inner = getattr(host, "backend", None)  # its DirectSolver / AMGSolver / ...
     for attr in ("name", "backend", "library"):
         v = getattr(inner, attr, None)
@@ -840,7 +840,7 @@ def _shard(scene: Scene, pot: Potential, bc_fn, bc: Dirichlet, v0) -> Sharded:
         potential=pot_s,
         bc=bc_s,
         bc_fn=sharded_bc,
-        solver=bind_solver(newton_of(scene.spec.solver), pot_s.mesh, bc_s),
+        solver=prepare_solver(newton_of(scene.spec.solver), pot_s.mesh, bc_s),
         x0=x0,
         v0=v0_s,
         partition=part,
@@ -924,7 +924,7 @@ def build(scene) -> Built:
         bc=bc,
         bc_fn=bc_fn,
         time_dependent=time_dep,
-        solver=bind_solver(newton_of(scene.spec.solver), mesh, bc, quadratic=is_quadratic(pot))
+        solver=prepare_solver(newton_of(scene.spec.solver), mesh, bc, quadratic=is_quadratic(pot))
         if sharded is None
         else sharded.solver,
         integrator=integrator,

@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+from ..solvers.linear.auto import choose
 from .load import Scene
 from .schema import GENERATOR_DIM
 
@@ -68,10 +69,6 @@ _ELEMENTS = {
 }
 _NNZ_RATIO = {"tri3": 2.5, "tri6": 1.5, "tri3x4": 1.5, "tet4": 5.6, "tet10": 2.4, "tet4x8": 2.4}
 """``E / nnz`` of the assembled Hessian (measured on rectangle/box meshes)."""
-_AUTO_DIRECT_MAX_DOFS = {2: 100_000, 3: 10_000}
-"""As :data:`jaxelastic.solvers.linear.AUTO_DIRECT_MAX_DOFS` (``"auto"``: direct below)."""
-_AUTO_DIRECT_MAX_DOFS_P2 = {2: 100_000, 3: 80_000}
-"""As :data:`jaxelastic.solvers.linear.AUTO_DIRECT_MAX_DOFS_P2` (P2 node sets)."""
 
 
 class MeshSize(NamedTuple):
@@ -131,13 +128,18 @@ def file_mesh_size(
 
 
 def _linear_kind(scene: Scene, size: MeshSize) -> str:
+    """The linear solver the scene will use: its own choice, or what the ``auto`` table
+    (:func:`~jaxelastic.solvers.linear.auto.choose`) picks for this size."""
     s = scene.spec.solver
     if s.linear != "auto":
         return s.linear
-    limits = (
-        _AUTO_DIRECT_MAX_DOFS_P2 if size.nodes_per_cell > size.dim + 1 else _AUTO_DIRECT_MAX_DOFS
+    return choose(
+        dim=size.dim,
+        n_dofs=size.n_nodes * size.dim,
+        element=size.element,
+        sharded=int(getattr(s, "devices", 1)) > 1,
+        check_installed=False,
     )
-    return "direct" if size.n_nodes * size.dim <= limits[size.dim] else "amg"
 
 
 def estimate(scene: Scene, size: MeshSize) -> dict[str, float]:

@@ -276,7 +276,7 @@ def run_header(built: Built, out: str) -> dict:
         material=dict(model=mat.model, **_material_constants(built.params), density=mat.density),
         solver=scene.spec.solver.model_dump(),
         precision=str(mesh.points.dtype),
-        linear_solver=linear_solver_name(built.solver.linear),
+        linear_solver=linear_solver_name(built.solver.linear, built.solver.linear_state),
         integrator=None if built.integrator is None else built.integrator._asdict(),
         devices=scene.spec.solver.devices,
         partition=partition_report(built),

@@ -1,8 +1,9 @@
 """Solvers: one :func:`solve` for x*, Newton, linear solvers, host back ends, adjoints.
 
-``results`` (Status, Solution, SolveError) → ``linear`` (the one CG, CG/Direct/AMG
-objects) → ``newton`` (Newton settings and loop) → ``adjoint`` (implicit-function-theorem
-derivatives) → ``solve`` (the entry point) → ``continuation`` (load stepping on solve).
+``results`` (Status, Solution, SolveError) → ``linear`` (settings, state, the ``auto``
+table, the one CG) → ``newton`` (settings, state, the one loop) → ``adjoint``
+(implicit-function-theorem derivatives) → ``equilibrium`` (:func:`solve`, the entry point)
+→ ``continuation`` (load stepping on solve).
 """
 
 from .adjoint import X_STAR as X_STAR
@@ -12,20 +13,75 @@ from .adjoint import check_finite_gradients as check_finite_gradients
 from .adjoint import value_and_grad as value_and_grad
 from .continuation import scaled_dirichlet as scaled_dirichlet
 from .continuation import solve_incremental as solve_incremental
+from .equilibrium import PreparedSolver as PreparedSolver
+from .equilibrium import bind_solver as bind_solver
+from .equilibrium import is_traced as is_traced
+from .equilibrium import prepare_solver as prepare_solver
+from .equilibrium import solve as solve
 from .host import HostLinearSolver as HostLinearSolver
 from .linear import AMG as AMG
 from .linear import AUTO_DIRECT_MAX_DOFS as AUTO_DIRECT_MAX_DOFS
 from .linear import CG as CG
 from .linear import LINEAR_SOLVERS as LINEAR_SOLVERS
 from .linear import Direct as Direct
+from .linear import LinearSolver as LinearSolver
+from .linear import LinearState as LinearState
 from .linear import Multilevel as Multilevel
 from .linear import bind_linear as bind_linear
 from .linear import cg as cg
+from .linear import init_linear as init_linear
 from .newton import Newton as Newton
-from .newton import contact_potential as contact_potential
+from .newton import NewtonState as NewtonState
+from .newton import solved_potential as solved_potential
 from .results import Solution as Solution
 from .results import SolveError as SolveError
 from .results import Status as Status
-from .solve import bind_solver as bind_solver
-from .solve import is_traced as is_traced
-from .solve import solve as solve
+
+__all__ = [
+    "X_STAR",
+    "GradientError",
+    "ImplicitAdjoint",
+    "check_finite_gradients",
+    "value_and_grad",
+    "scaled_dirichlet",
+    "solve_incremental",
+    "bind_solver",
+    "PreparedSolver",
+    "is_traced",
+    "prepare_solver",
+    "solve",
+    "HostLinearSolver",
+    "AMG",
+    "AUTO_DIRECT_MAX_DOFS",
+    "CG",
+    "LINEAR_SOLVERS",
+    "Direct",
+    "LinearSolver",
+    "LinearState",
+    "Multilevel",
+    "bind_linear",
+    "cg",
+    "init_linear",
+    "Newton",
+    "NewtonState",
+    "solved_potential",
+    "Solution",
+    "SolveError",
+    "Status",
+]
+
+_DEPRECATED = {"contact_potential": ("solved_potential", solved_potential)}
+
+
+def __getattr__(name: str):
+    if name in _DEPRECATED:
+        import warnings
+
+        new, obj = _DEPRECATED[name]
+        warnings.warn(
+            f"je.solvers.{name} is deprecated: use je.solvers.{new} (same arguments)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return obj
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

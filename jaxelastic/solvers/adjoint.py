@@ -20,8 +20,12 @@ chose this over ``lax.custom_root``, which would re-derive the tangent system fr
 residual function and hide the Dirichlet split and the failure flag.
 
 The adjoint/tangent system is solved by the Newton solver's linear solver in its exact
-mode (:meth:`~jaxelastic.solvers.linear.CG.exact`: block-Jacobi PCG on the exact Hessian;
-host back ends: device PCG preconditioned by the last Newton factorisation).
+mode (:meth:`~jaxelastic.solvers.linear.LinearSolver.exact`: block-Jacobi PCG on the exact
+Hessian; host back ends: device PCG preconditioned by the last Newton factorisation). The
+forward solve runs on ``lax.stop_gradient`` of the inputs, so under an eager ``jax.grad``
+or ``jax.jvp`` it is the same solve, on concrete values, as without differentiation
+(:func:`~jaxelastic.solvers.newton.minimize`); the adjoint and tangent computations are
+compiled functions of their own.
 
 Failure is loud: if the forward Newton solve or the adjoint solve did not converge,
 *every* floating-point cotangent is NaN; :func:`value_and_grad` (and the fitting loop)
@@ -45,8 +49,8 @@ from jax.ad_checkpoint import checkpoint_name
 from .. import potential as pot_mod
 from ..loads import Dirichlet
 from ..potential import Potential
-from .linear import NewtonSystem
-from .newton import Newton, contact_potential
+from .linear import LinearState, NewtonSystem, exact_system
+from .newton import Newton, minimize, solved_potential
 from .results import Solution, Status
 
 __all__ = [
@@ -118,94 +122,68 @@ def _nan_unless(ok, tree):
     return jax.tree_util.tree_map(f, tree)
 
 
-def _exact_system(pot: Potential, x, mask) -> NewtonSystem:
-    """The exact Hessian at x: element Hessians + lumped mass (HVP if stiffness damping)."""
-    free = ~mask
-    fm = free.astype(x.dtype)
-    Ke = pot_mod.elastic_element_hessians(pot, x, project=False, exact_contact=True)
-    # self-contact: the pair Hessians' coupling of different nodes (not inside Ke)
-    cpl = None if pot.contact is None else pot.contact.coupling(x, exact=True)
-
-    def KV(K, v) -> jax.Array:
-        Kv = pot_mod.element_hessian_vp(pot, K, v)
-        return Kv if cpl is None else Kv + cpl(v)
-
-    def operator(K):
-        def A(v):
-            return fm * KV(K, fm * v) + (1.0 - fm) * v
-
-        return A
-
-    if pot.stiffness_damping is not None:
-
-        def H(v):
-            return pot_mod.hessian_vp(pot, x, v, exact_contact=True)
-    else:
-
-        def H(v):
-            return KV(Ke, v)
-
-    def A(v):
-        return fm * H(fm * v) + (1.0 - fm) * v
-
-    return NewtonSystem(pot=pot, x=x, free=free, Ke=Ke, H=H, A=A, operator=operator)
-
-
-def _solve_ff(solver: Newton, adj: ImplicitAdjoint, system: NewtonSystem, rhs):
+def _solve_ff(solver: Newton, lstate, adj: ImplicitAdjoint, system: NewtonSystem, rhs):
     """Solve ``K_ff y = rhs_f`` (y = 0 on prescribed dofs). Returns ``(y, converged)``."""
     fm = system.free.astype(rhs.dtype)
     b = fm * rhs
-    res = solver.linear.exact(system, b, adj.rtol, adj.max_iter)
+    res = solver.linear.exact(lstate, system, b, adj.rtol, adj.max_iter)
     y = fm * res.x
     ok = (res.status == Status.SUCCESS) | (jnp.sum(b * b) == 0)
     return y, ok & jnp.all(jnp.isfinite(y))
 
 
-@functools.cache
+def _zeros_like_tree(tree):
+    return jax.tree_util.tree_map(_zero_tangent, tree)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, lstate, xbar):
+    """``(pot̄, bc̄)`` of x* from ``x̄`` (one adjoint solve; NaN if anything failed)."""
+    mask = bc.mask
+    fm = (~mask).astype(x.dtype)
+    system = exact_system(pot, x, mask)
+    lam, adj_ok = _solve_ff(solver, lstate, adj, system, xbar)
+    ok = (status == Status.SUCCESS) & adj_ok
+
+    def g_free(p):
+        return fm * pot_mod.gradient(p, x)
+
+    _, vjp = jax.vjp(g_free, pot)
+    (pot_bar,) = vjp(-lam)
+    vals_bar = jnp.where(mask, xbar - system.H(lam), 0.0)
+    return _nan_unless(ok, pot_bar), _nan_unless(ok, vals_bar)
+
+
+@functools.lru_cache(maxsize=64)
 def _attach_fn(solver: Newton, adj: ImplicitAdjoint):
-    """``attach(pot, bc, x*, status) = x*`` with the implicit-function-theorem VJP."""
+    """``attach(pot, bc, x*, status, lstate) = x*`` with the implicit-function-theorem VJP
+    (one per settings pair; settings hold no state, so the cache holds no factorisation)."""
 
     @jax.custom_vjp
-    def attach(pot, bc, x, status):
+    def attach(pot, bc, x, status, lstate):
         return x
 
-    def fwd(pot, bc, x, status):
-        return x, (pot, bc, x, status)
+    def fwd(pot, bc, x, status, lstate):
+        return x, (pot, bc, x, status, lstate)
 
     def bwd(saved, xbar):
-        pot, bc, x, status = saved
-        mask = bc.mask
-        fm = (~mask).astype(x.dtype)
-        system = _exact_system(pot, x, mask)
-        lam, adj_ok = _solve_ff(solver, adj, system, xbar)
-        ok = (status == Status.SUCCESS) & adj_ok
-
-        def g_free(p):
-            return fm * pot_mod.gradient(p, x)
-
-        _, vjp = jax.vjp(g_free, pot)
-        (pot_bar,) = vjp(-lam)
-        vals_bar = jnp.where(mask, xbar - system.H(lam), 0.0)
+        pot, bc, x, status, lstate = saved
+        pot_bar, vals_bar = _cotangents(solver, adj, pot, bc, x, status, lstate, xbar)
         # the cotangent of the bool mask is a float0 numpy array, which JAX takes for it
-        bc_bar = Dirichlet(mask=cast(jax.Array, _float0_like(mask)), values=vals_bar)
-        return (
-            _nan_unless(ok, pot_bar),
-            _nan_unless(ok, bc_bar),
-            jnp.zeros_like(x),
-            _float0_like(status),
-        )
+        bc_bar = Dirichlet(mask=cast(jax.Array, _float0_like(bc.mask)), values=vals_bar)
+        return (pot_bar, bc_bar, jnp.zeros_like(x), _float0_like(status), _zeros_like_tree(lstate))
 
     attach.defvjp(fwd, bwd)
     return attach
 
 
-def _reverse(solver: Newton, adj: ImplicitAdjoint, pot, bc, x0) -> Solution:
+def _reverse(solver: Newton, lstate, adj: ImplicitAdjoint, pot, bc, x0) -> Solution:
     stop = lax.stop_gradient
-    res = solver.minimize(stop(pot), stop(bc), stop(x0))
+    res = minimize(solver, lstate, stop(pot), stop(bc), stop(x0))
     x = checkpoint_name(res.x, X_STAR)
     status = checkpoint_name(res.status, X_STAR)
-    # with contact, x* minimises the potential with the in-solve adapted κ
-    x = _attach_fn(solver, adj)(contact_potential(pot, res), bc, x, status)
+    # x* minimises the potential with its terms at the stiffness the solve adapted to
+    x = _attach_fn(solver, adj)(solved_potential(pot, res), bc, x, status, lstate)
     return res._replace(x=x, status=status)
 
 
@@ -213,38 +191,44 @@ def _zero_tangent(a):
     return jnp.zeros_like(a) if _is_float(a) else _float0_like(a)
 
 
-@functools.cache
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _tangent(solver: Newton, adj: ImplicitAdjoint, pot, bc, res: Solution, lstate, pot_dot, bc_dot):
+    """``ẋ`` of x* (one tangent solve, transposable; NaN if anything failed)."""
+    x = res.x
+    fm = (~bc.mask).astype(x.dtype)
+    system = exact_system(solved_potential(pot, res), x, bc.mask)
+
+    def g_free(p):  # at the stiffness the solve adapted to
+        return fm * pot_mod.gradient(solved_potential(p, res), x)
+
+    _, g_dot = jax.jvp(g_free, (pot,), (pot_dot,))  # (∂g_f/∂θ)·θ̇
+    v_dot = (1.0 - fm) * bc_dot.values  # ẋ_D = v̇_D
+    rhs = -(g_dot + fm * system.H(v_dot))
+
+    def solve(_, b):  # not differentiated: only linear in b, NaN if it failed
+        y, ok = _solve_ff(solver, lstate, adj, system, b)
+        return jnp.where(ok, y, jnp.nan)
+
+    y = lax.custom_linear_solve(system.A, rhs, solve, symmetric=True)
+    # multiplying by 1 or NaN keeps the tangent linear (and so transposable)
+    scale = jnp.where(res.status == Status.SUCCESS, 1.0, jnp.nan).astype(x.dtype)
+    return scale * (fm * y + v_dot)
+
+
+@functools.lru_cache(maxsize=64)
 def _forward_fn(solver: Newton, adj: ImplicitAdjoint):
     """Forward-mode rule: ``K_ff ẋ_f = −(∂g_f/∂θ)·θ̇ − K_fD v̇_D``, ``ẋ_D = v̇_D``."""
 
     @jax.custom_jvp
-    def solve_fn(pot, bc, x0):
-        return solver.minimize(pot, bc, x0)
+    def solve_fn(pot, bc, x0, lstate):
+        return minimize(solver, lstate, pot, bc, x0)
 
     @solve_fn.defjvp
     def jvp(primals, tangents):
-        pot, bc, x0 = primals
-        pot_dot, bc_dot, _ = tangents
-        res = solve_fn(pot, bc, x0)
-        x = res.x
-        fm = (~bc.mask).astype(x.dtype)
-        system = _exact_system(contact_potential(pot, res), x, bc.mask)
-
-        def g_free(p):  # with contact: at the in-solve adapted κ
-            return fm * pot_mod.gradient(contact_potential(p, res), x)
-
-        _, g_dot = jax.jvp(g_free, (pot,), (pot_dot,))  # (∂g_f/∂θ)·θ̇
-        v_dot = (1.0 - fm) * bc_dot.values  # ẋ_D = v̇_D
-        rhs = -(g_dot + fm * system.H(v_dot))
-
-        def solve(_, b):  # not differentiated: only linear in b, NaN if it failed
-            y, ok = _solve_ff(solver, adj, system, b)
-            return jnp.where(ok, y, jnp.nan)
-
-        y = lax.custom_linear_solve(system.A, rhs, solve, symmetric=True)
-        # multiplying by 1 or NaN keeps the tangent linear (and so transposable)
-        scale = jnp.where(res.status == Status.SUCCESS, 1.0, jnp.nan).astype(x.dtype)
-        x_dot = scale * (fm * y + v_dot)
+        pot, bc, x0, lstate = primals
+        pot_dot, bc_dot, _, _ = tangents
+        res = solve_fn(pot, bc, x0, lstate)
+        x_dot = _tangent(solver, adj, pot, bc, res, lstate, pot_dot, bc_dot)
         res_dot = jax.tree_util.tree_map(_zero_tangent, res)._replace(x=x_dot)
         return res, res_dot
 
@@ -252,13 +236,14 @@ def _forward_fn(solver: Newton, adj: ImplicitAdjoint):
 
 
 def differentiable_minimize(
-    solver: Newton, adj: ImplicitAdjoint, pot: Potential, bc: Dirichlet, x0
+    solver: Newton, lstate: LinearState, adj: ImplicitAdjoint, pot: Potential, bc: Dirichlet, x0
 ) -> Solution:
-    """:meth:`Newton.minimize` with implicit derivatives of ``x`` (the body of
-    :func:`jaxelastic.solve`; ``solver.linear`` must be bound). Pure and jit-able."""
+    """:func:`~jaxelastic.solvers.newton.minimize` with implicit derivatives of ``x`` (the
+    body of :func:`jaxelastic.solve`; ``solver.linear`` resolved, ``lstate`` its state).
+    Pure and jit-able."""
     if adj.mode == "reverse":
-        return _reverse(solver, adj, pot, bc, x0)
-    return _forward_fn(solver, adj)(pot, bc, x0)
+        return _reverse(solver, lstate, adj, pot, bc, x0)
+    return _forward_fn(solver, adj)(pot, bc, x0, lstate)
 
 
 def check_finite_gradients(grads) -> None:

@@ -5,7 +5,7 @@ motion that would tangle the mesh in one step), the load factor ``s`` goes from 
 at each trial ``s`` the potential's external forces are ``s·f_ext`` and the Dirichlet data
 ``path(s)`` (default: the prescribed displacement scaled by ``s``). A failed solve halves
 the increment (from the last converged state); a success grows it again (×1.5, at most the
-initial increment). Every increment is one :func:`~jaxelastic.solvers.solve.solve`; all
+initial increment). Every increment is one :func:`~jaxelastic.solvers.equilibrium.solve`; all
 share one compilation (only array values change between them). With a contact term
 (``pot.contact``) the obstacles' prescribed motion is evaluated at ``s``, friction is
 lagged at the last converged state, and nodes an obstacle swept over are pushed out of it
@@ -21,9 +21,9 @@ import jax.numpy as jnp
 
 from ..loads import Dirichlet
 from ..potential import Potential
+from .equilibrium import prepare_solver, solve
 from .newton import Newton
 from .results import Solution, SolveError, Status
-from .solve import bind_solver, solve
 
 __all__ = ["scaled_dirichlet", "solve_incremental"]
 
@@ -91,7 +91,7 @@ def solve_incremental(
         raise ValueError(f"min_increment must be in (0, 1], got {min_increment}")
     path = path if path is not None else scaled_dirichlet(pot.mesh, bc)
     x = pot.mesh.points if x0 is None else jnp.asarray(x0, pot.mesh.points.dtype)
-    solver = bind_solver(solver, pot.mesh, path(1.0))
+    solver = prepare_solver(solver, pot.mesh, path(1.0))
     f_full = pot.f_ext
     s, ds0 = 0.0, 1.0 / steps
     ds = ds0

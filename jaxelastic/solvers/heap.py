@@ -3,7 +3,7 @@
 glibc ``malloc`` keeps freed blocks of its heaps (one arena per thread: XLA's CPU thread
 pool, the host callbacks, NumPy) for reuse instead of returning them, and blocks freed in
 one arena cannot serve another thread's request. Between the compiled pieces of a host
-Newton step (:func:`jaxelastic.solvers.newton.host_minimize`) the element Hessians,
+Newton step (the Python loop of :func:`jaxelastic.solvers.newton.minimize`) the element Hessians,
 XLA temporaries and the AMG refresh's sparse products are freed and allocated again, and
 the process's resident set creeps up by hundreds of MB that hold nothing live (measured
 at 146k tets: steady RSS 1.1–1.3 GB with 0.65 GB live, peak 1.36–1.51 GB; with the free

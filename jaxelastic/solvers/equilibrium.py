@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -24,12 +25,13 @@ from ..materials import Lame, check_lame
 from ..mesh import Mesh
 from ..potential import Potential, is_array
 from .adjoint import ImplicitAdjoint, differentiable_minimize
-from .linear import AMG, Direct, bind_linear
-from .newton import Newton, host_minimize, is_quadratic
+from .linear import LinearState, init_linear, resolve
+from .newton import Newton, is_quadratic
+from .newton import terms as newton_terms
 from .pattern import rigid_body_modes
 from .results import Solution, SolveError, Status
 
-__all__ = ["solve", "bind_solver", "is_traced"]
+__all__ = ["solve", "PreparedSolver", "prepare_solver", "bind_solver", "is_traced"]
 
 
 def is_traced(*trees) -> bool:
@@ -37,34 +39,86 @@ def is_traced(*trees) -> bool:
     return any(isinstance(a, Tracer) for t in trees for a in jax.tree_util.tree_leaves(t))
 
 
-def bind_solver(solver: Newton, mesh, bc: Dirichlet, *, quadratic: bool = False) -> Newton:
-    """``solver`` with its linear solver resolved and bound for ``mesh`` and ``bc.mask``
-    (:func:`~jaxelastic.solvers.linear.bind_linear`; ``quadratic``: the potential is
-    quadratic, see there); call it once outside jit to reuse a host factorisation pattern
-    across many solves."""
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PreparedSolver:
+    """Newton settings with their linear solver resolved, and that solver's state for one
+    mesh and Dirichlet mask (:func:`prepare_solver`). A pytree: the settings are static,
+    the state's arrays (a device hierarchy) are leaves, so it can be a ``jit`` argument.
+    Pass it as ``je.solve(..., solver=prepared)`` to reuse the state across solves.
+
+    Attributes:
+        newton: :class:`~jaxelastic.solvers.newton.Newton` with a resolved ``linear``.
+        linear_state: :class:`~jaxelastic.solvers.linear.LinearState`.
+    """
+
+    newton: Newton = dataclasses.field(metadata=dict(static=True))
+    linear_state: LinearState = dataclasses.field(default_factory=LinearState)
+
+    @property
+    def linear(self):
+        """The resolved linear-solver settings."""
+        return self.newton.linear
+
+
+def prepare_solver(
+    solver: Newton | PreparedSolver,
+    mesh,
+    bc: Dirichlet,
+    *,
+    quadratic: bool = False,
+    linear_state=None,
+) -> PreparedSolver:
+    """``solver`` with its linear solver resolved (``"auto"`` → the table's choice,
+    :func:`~jaxelastic.solvers.linear.resolve`) and that solver's state for ``mesh`` and
+    ``bc.mask`` (:func:`~jaxelastic.solvers.linear.init_linear`; host work, cached by
+    content). ``linear_state``: a state made before (kept as is). Call it once outside jit
+    where the mesh or the mask will be traced (e.g. a fit, whose cases are jit arguments).
+
+    Raises:
+        TypeError: ``solver`` is not Newton settings; ValueError: a ``linear_state`` of
+            another solver, or as :func:`~jaxelastic.solvers.linear.init_linear`.
+    """
+    if isinstance(solver, PreparedSolver):
+        if linear_state is not None and linear_state is not solver.linear_state:
+            raise ValueError("pass the linear state once: in the PreparedSolver or as linear_state")
+        return solver
     if not isinstance(solver, Newton):
         raise TypeError(f"solver must be a je.Newton(...), got {type(solver).__name__}")
-    linear = bind_linear(solver.linear, mesh, bc, quadratic=quadratic)
-    return solver if linear is solver.linear else dataclasses.replace(solver, linear=linear)
+    if linear_state is not None:
+        if not isinstance(linear_state, LinearState):
+            raise TypeError(
+                "linear_state must be the state of je.solvers.init_linear(linear, mesh, bc), "
+                f"got {type(linear_state).__name__}"
+            )
+        linear = resolve(solver.linear, mesh, bc, quadratic=quadratic)
+        if linear.kind != linear_state.kind:
+            raise ValueError(
+                f"linear_state belongs to a {linear_state.kind!r} solver but the Newton "
+                f"settings use {linear.kind!r}: make the state from the same linear solver"
+            )
+        state = linear_state
+    else:
+        linear, state = init_linear(solver.linear, mesh, bc, quadratic=quadratic)
+    settings = solver if linear is solver.linear else dataclasses.replace(solver, linear=linear)
+    return PreparedSolver(settings, state)
+
+
+def bind_solver(
+    solver: Newton | PreparedSolver, mesh, bc: Dirichlet, *, quadratic: bool = False
+) -> PreparedSolver:
+    """Deprecated name of :func:`prepare_solver`."""
+    warnings.warn(
+        "je.solvers.bind_solver is deprecated: use je.solvers.prepare_solver (same arguments)",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return prepare_solver(solver, mesh, bc, quadratic=quadratic)
 
 
 @functools.partial(jax.jit, static_argnames=("solver", "adjoint"))
-def _solve_jit(pot, bc, x0, solver, adjoint, hierarchy=None):
-    if hierarchy is not None:  # a device linear solver's arrays travel as an argument
-        solver = dataclasses.replace(
-            solver, linear=dataclasses.replace(solver.linear, hierarchy=hierarchy)
-        )
-    return differentiable_minimize(solver, adjoint, pot, bc, x0)
-
-
-def _split_hierarchy(solver: Newton):
-    """``(solver without its linear solver's device arrays, the arrays or None)``: a
-    :class:`~jaxelastic.solvers.linear.Multilevel` hierarchy is passed to the compiled
-    solve as an argument, not closed over (large XLA constants, one compile per mesh)."""
-    h = getattr(solver.linear, "hierarchy", None)
-    if h is None:
-        return solver, None
-    return dataclasses.replace(solver, linear=dataclasses.replace(solver.linear, hierarchy=None)), h
+def _solve_jit(pot, bc, x0, solver, adjoint, lstate):
+    return differentiable_minimize(solver, lstate, adjoint, pot, bc, x0)
 
 
 def _check_inputs(pot: Potential, bc: Dirichlet, x0):
@@ -194,21 +248,15 @@ def _check_constrained(pot: Potential, bc: Dirichlet) -> None:
         )
 
 
-SELF_CONTACT_RESTARTS = 20
-"""Outside jit, a solve on a device linear solver whose iterate ran into the
-self-contact motion bound without converging is continued this many times from where it
-stopped, each time after a new broad phase (host linear solvers re-run the broad phase
-between Newton iterations instead)."""
-
-
 def solve(
     pot: Potential,
     bc: Dirichlet,
     *,
     x0: jax.Array | None = None,
-    solver: Newton = Newton(),
+    solver: Newton | PreparedSolver = Newton(),
     adjoint: ImplicitAdjoint = ImplicitAdjoint(),
     throw: bool = True,
+    linear_state: LinearState | None = None,
 ) -> Solution:
     """Minimise Π(x) subject to ``x[bc.mask] = bc.values[bc.mask]``.
 
@@ -220,9 +268,14 @@ def solve(
     solve with the Hessian at x*), never from the Newton iterations; if the solve failed
     they are NaN. Derivatives with respect to ``x0`` are zero.
 
-    Long because: one entry point dispatches three drivers (traced → the compiled solve;
-    host back ends → the host Newton loop; self-contact → broad-phase restarts), each a few
-    lines that read best side by side.
+    Long because: the checks, the choice between a traced and a concrete solve and the
+    failure message read best in one place.
+
+    The Newton loop (:func:`~jaxelastic.solvers.newton.minimize`) runs on
+    ``lax.stop_gradient`` of the inputs: under ``jit``/``vmap`` as one ``lax.while_loop``;
+    outside, on concrete values — also under an eager ``jax.grad``/``jax.jvp`` — as one
+    compiled program, or as a Python loop over compiled pieces where the linear solver
+    runs on the host (Direct, AMG) or a term wants a host refresh (self-contact).
 
     Args:
         pot: the :class:`~jaxelastic.potential.Potential` (elastic energy, loads, inertia).
@@ -236,6 +289,9 @@ def solve(
             derivative solves.
         throw: outside jit, raise :class:`~jaxelastic.solvers.results.SolveError` unless
             the status is SUCCESS. Inside jit nothing is raised: read ``status``.
+        linear_state: the linear solver's state for this mesh and mask
+            (:func:`~jaxelastic.solvers.linear.init_linear`); made here when None, which
+            needs a concrete mesh and mask for Direct, AMG and Multilevel.
 
     Raises:
         ValueError: (outside jit, before anything is compiled) inputs of the wrong shape, or
@@ -246,32 +302,22 @@ def solve(
         jit ``stats["wall_time"]`` is the wall-clock time of the solve in seconds).
     """
     x0 = _check_inputs(pot, bc, x0)
-    solver = bind_solver(solver, pot.mesh, bc, quadratic=is_quadratic(pot))
+    prepared = prepare_solver(
+        solver, pot.mesh, bc, quadratic=is_quadratic(pot), linear_state=linear_state
+    )
+    solver, lstate = prepared.newton, prepared.linear_state
     if not isinstance(adjoint, ImplicitAdjoint):
         raise TypeError(f"adjoint must be je.ImplicitAdjoint(...), got {type(adjoint).__name__}")
-    if is_traced(pot, bc, x0):
-        if getattr(solver.linear, "hierarchy", None) is None:
-            # one compiled solve under an eager jax.grad/vmap too (op by op it took ~5x
-            # the compile of the whole, and as long again on every call); in a jit: inlined.
-            # (A Multilevel hierarchy would leak the inner jit's tracers into the adjoint.)
-            return _solve_jit(pot, bc, x0, solver, adjoint)
-        return differentiable_minimize(solver, adjoint, pot, bc, x0)
-    _check_constrained(pot, bc)
+    stop = jax.lax.stop_gradient
+    if is_traced(stop(pot), stop(bc), stop(x0)):
+        # inside jit/vmap: one compiled solve under an eager vmap too (op by op it took
+        # ~5x the compile of the whole); inside a jit: inlined
+        return _solve_jit(pot, bc, x0, solver, adjoint, lstate)
+    if not is_traced(pot, bc, x0):
+        _check_constrained(pot, bc)
+        pot = newton_terms.refreshed(pot, x0)  # self-contact: the broad phase at x0
     t0 = time.perf_counter()
-    if pot.contact is not None:  # self-contact: the broad phase at x0 (host; else a no-op)
-        pot = pot.replace(contact=pot.contact.refreshed(x0))
-    if isinstance(solver.linear, (Direct, AMG)):
-        # Newton's loop on the host: its compiled pieces, but for the linear solve's
-        # callback, go to the persistent compilation cache (see newton.host_minimize)
-        res = jax.block_until_ready(host_minimize(solver, pot, bc, x0))
-    else:
-        static, hierarchy = _split_hierarchy(solver)
-        res = jax.block_until_ready(_solve_jit(pot, bc, x0, static, adjoint, hierarchy))
-        for _ in range(SELF_CONTACT_RESTARTS):  # a jitted solve held back by the motion
-            if bool(res.ok) or pot.contact is None or not pot.contact.outran(res.x):
-                break  # bound of its self-contact candidates: new broad phase, go on
-            pot = pot.replace(contact=pot.contact.refreshed(res.x, force=True))
-            res = jax.block_until_ready(_solve_jit(pot, bc, res.x, static, adjoint, hierarchy))
+    res = jax.block_until_ready(differentiable_minimize(solver, lstate, adjoint, pot, bc, x0))
     stats = dict(res.stats, wall_time=time.perf_counter() - t0)
     res = res._replace(stats=stats)
     if throw and int(res.status) != Status.SUCCESS:

@@ -1,0 +1,115 @@
+"""The Newton loop's state: :class:`NewtonState`, :func:`init`, :func:`terminate` and the
+:class:`~jaxelastic.solvers.results.Solution` of a finished state."""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ...loads import Dirichlet
+from ...potential import Potential
+from ..results import RUNNING, Solution, Status
+from . import terms
+from .iteration import min_J, norm, status_of, value_and_grad
+from .settings import Newton
+
+__all__ = ["NewtonState", "init", "terminate", "solution", "body_length"]
+
+
+class NewtonState(NamedTuple):
+    """Everything the Newton loop carries between iterations (a pytree).
+
+    Attributes:
+        x: ``(n_nodes, dim)`` the current iterate; g: ``(n_nodes, dim)`` ∇Π there;
+        energy: Π(x) (``+inf`` where undefined).
+        k: iterations done; status: int32, ``RUNNING`` (−1) or a
+            :class:`~jaxelastic.solvers.results.Status`.
+        ref: the residual's reference scale (largest free residual, ‖f_ext‖ or Dirichlet
+            right-hand side seen) [force].
+        hist: ``(max_steps + 1,)`` free residual norms; lin_hist: ``(max_steps,)`` linear
+            iterations; alpha_hist: ``(max_steps,)`` accepted step lengths (NaN: none).
+        cuts: line-search halvings; neg: negative-curvature linear solves; proj: projected
+            retries; floor: the residual's round-off floor at the last iterate.
+        terms: adaptation states of the potential's terms, by name
+            (:mod:`~jaxelastic.solvers.newton.terms`).
+    """
+
+    x: jax.Array
+    g: jax.Array
+    energy: jax.Array
+    k: jax.Array
+    status: jax.Array
+    ref: jax.Array
+    hist: jax.Array
+    lin_hist: jax.Array
+    alpha_hist: jax.Array
+    cuts: jax.Array
+    neg: jax.Array
+    proj: jax.Array
+    floor: jax.Array
+    terms: Any
+
+
+def init(s: Newton, pot: Potential, bc: Dirichlet, x0) -> NewtonState:
+    """The state before the first iteration from ``x0`` ``(n_nodes, dim)`` (traceable)."""
+    mask, dtype = bc.mask, x0.dtype
+    fm = (~mask).astype(dtype)
+    ts = terms.init_states(s.kappa_max_factor, pot, x0)
+    e0, g0 = value_and_grad(s, terms.with_states(pot, ts), x0)
+    rn0 = norm(g0 * fm)
+    dn0 = norm(jnp.where(mask, bc.values - x0, 0.0))
+    ref0 = norm(pot.f_ext * fm) if pot.f_ext is not None else jnp.zeros((), dtype)
+    ref = jnp.maximum(ref0, rn0)
+    st0 = status_of(s, rn0, dn0, ref, 0)
+    inverted = jnp.where(min_J(pot, x0) <= 0, Status.INVERTED, Status.NONFINITE)
+    st0 = jnp.where(jnp.isfinite(e0), st0, inverted)
+    zero = jnp.asarray(0, jnp.int32)
+    return NewtonState(
+        x=x0,
+        g=g0,
+        energy=e0,
+        k=zero,
+        status=st0.astype(jnp.int32),
+        ref=ref,
+        hist=jnp.full((s.max_steps + 1,), jnp.nan, dtype).at[0].set(rn0),
+        lin_hist=jnp.zeros((s.max_steps,), jnp.int32),
+        alpha_hist=jnp.full((s.max_steps,), jnp.nan, dtype),
+        cuts=zero,
+        neg=zero,
+        proj=zero,
+        floor=jnp.zeros((), dtype),
+        terms=ts,
+    )
+
+
+def terminate(state: NewtonState) -> jax.Array:
+    """Whether the loop stops (bool array): the status is no longer ``RUNNING``."""
+    return state.status != RUNNING
+
+
+def body_length(pot: Potential) -> jax.Array:
+    """Diagonal of the rest bounding box [length] (the scale of ``Newton.xtol``)."""
+    X = pot.mesh.points
+    return jnp.sqrt(jnp.sum((jnp.max(X, axis=0) - jnp.min(X, axis=0)) ** 2))
+
+
+def solution(pot: Potential, state: NewtonState) -> Solution:
+    """The :class:`~jaxelastic.solvers.results.Solution` of a finished state."""
+    stats = dict(
+        steps=state.k,
+        linear_iterations=jnp.sum(state.lin_hist),
+        residual=state.hist[state.k],
+        energy=state.energy,
+        residual_history=state.hist,
+        linear_history=state.lin_hist,
+        step_history=state.alpha_hist,
+        line_search_cutbacks=state.cuts,
+        negative_curvature=state.neg,
+        projected=state.proj,
+        residual_floor=state.floor,
+        wall_time=jnp.asarray(jnp.nan, state.x.dtype),
+    )
+    stats.update(terms.stats(pot, state.terms))
+    return Solution(x=state.x, status=state.status, stats=stats)
