@@ -684,9 +684,9 @@ def newton_of(s: SolverSpec) -> Newton:
 
 def linear_solver_name(linear, state=None) -> str:
     """What a linear solver is, for the summary: its kind and, where its state
-    (:class:`~jaxelastic.solvers.LinearState`) has one, the back end it resolved to (``"direct (cholespy)"``, ``"amg (pyamg)"``, ``"cg
-    (block_jacobi)"``); read from the object's attributes, so a new back end is named
-    without a change here."""
+    (:class:`~jaxelastic.solvers.LinearState`) has one, the back end it resolved to
+    (``"direct (cholespy)"``, ``"amg (pyamg)"``, ``"cg (block_jacobi)"``); read from the
+    objects' attributes, so a new back end is named without a change here."""
     if isinstance(linear, str):
         return linear
     kind = str(getattr(linear, "kind", type(linear).__name__.lower()))
