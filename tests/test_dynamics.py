@@ -20,7 +20,6 @@ from jaxelastic import Newton, Status
 from jaxelastic import dynamics as D
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic.solvers import linear as linear_solvers
 
 MU, LAM = (float(v) for v in M.lame(1.0e4, 0.3))
 PARAMS = M.Lame(MU, LAM)
@@ -243,11 +242,12 @@ def test_rollout_under_jit_matches_simulate(mesh, base):
         progress=False,
         callback=lambda s, r, rec: xs.append(np.asarray(s.x)),
     )
-    # the same linear solver as simulate's default (sparse Cholesky through a callback)
-    linear = linear_solvers.resolve("auto", mesh, bc(0.0))
-    assert isinstance(linear, je.Direct)
+    # the same linear solver as simulate's default (sparse Cholesky through a callback),
+    # its state made outside jit (the mesh is traced inside: base is a jit argument)
+    prepared = je.solvers.prepare_solver(SETTINGS, mesh, bc(0.0))
+    assert isinstance(prepared.linear, je.Direct) and prepared.linear_state.host is not None
     roll = jax.jit(D.rollout, static_argnames=("bc", "integ", "n_steps", "solver"))
-    final, traj = roll(base, st0, bc, BE, 12, solver=SETTINGS.replace(linear=linear))
+    final, traj = roll(base, st0, bc, BE, 12, solver=prepared)
     assert (np.asarray(traj.status) == Status.SUCCESS).all()
     assert (np.asarray(traj.stats["steps"]) >= 1).all()
     np.testing.assert_allclose(np.asarray(traj.frames), np.stack(xs), rtol=0, atol=1e-12)

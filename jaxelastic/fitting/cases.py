@@ -5,8 +5,9 @@ The case protocol (:class:`Case`; :func:`~jaxelastic.fitting.fit` needs nothing 
 * ``weight``: the case's weight in the loss;
 * ``mesh``: the rest mesh (region labels and the default regularisation graph refer to it);
 * ``initial_warm() -> W``: a pytree of arrays, the first Newton initial guess(es);
-* ``bind(solver) -> Newton``: the solver with its linear solver bound to this case's mesh
-  and Dirichlet pattern (:func:`jaxelastic.solvers.prepare_solver`), called once outside jit;
+* ``bind(solver) -> PreparedSolver``: the solver with its linear solver's state for this
+  case's mesh and Dirichlet pattern (:func:`jaxelastic.solvers.prepare_solver`), called
+  once outside jit;
 * ``evaluate(params, warm, solver, adjoint) -> (loss, CaseAux)``: the unweighted scalar
   misfit at the ψ parameters ``params``, pure, jit-able and reverse-mode differentiable
   (:func:`jaxelastic.solve` / :func:`jaxelastic.dynamics.rollout` differentiate by the
@@ -26,7 +27,7 @@ import numpy as np
 from ..dynamics import Integrator, State, rollout
 from ..loads import Dirichlet
 from ..potential import Potential
-from ..solvers import ImplicitAdjoint, Newton, Status, prepare_solver, solve
+from ..solvers import ImplicitAdjoint, Newton, PreparedSolver, Status, prepare_solver, solve
 from .observations import observation_loss
 
 __all__ = ["Case", "CaseAux", "LoadCase", "TrajectoryCase"]
@@ -66,7 +67,7 @@ class Case(abc.ABC):
     def evaluate(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):
         """``(unweighted loss, CaseAux)`` at ψ parameters ``params``."""
 
-    def bind(self, solver: Newton) -> Newton:
+    def bind(self, solver: Newton) -> Newton | PreparedSolver:
         """``solver`` as is (override to bind a host linear solver to the case)."""
         return solver
 
@@ -101,7 +102,7 @@ class LoadCase(Case):
         """Rest positions ``(n_nodes, dim)``."""
         return self.pot.mesh.points
 
-    def bind(self, solver: Newton) -> Newton:
+    def bind(self, solver: Newton) -> Newton | PreparedSolver:
         """``solver`` with its linear solver bound to this mesh and Dirichlet pattern."""
         return prepare_solver(solver, self.pot.mesh, self.bc)
 
@@ -181,7 +182,7 @@ class TrajectoryCase(Case):
         x0 = jnp.asarray(self.state0.x)
         return jnp.broadcast_to(x0, (self.n_steps, *x0.shape))
 
-    def bind(self, solver: Newton) -> Newton:
+    def bind(self, solver: Newton) -> Newton | PreparedSolver:
         """``solver`` with its linear solver bound to this mesh and Dirichlet pattern."""
         return prepare_solver(solver, self.pot.mesh, self.bc)
 

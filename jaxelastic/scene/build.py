@@ -43,7 +43,7 @@ from ..mesh import (
 )
 from ..mesh.elements import edge_table
 from ..potential import Potential
-from ..solvers import CG, Newton, prepare_solver
+from ..solvers import CG, Newton, PreparedSolver, prepare_solver
 from ..solvers.newton import is_quadratic
 from . import memory
 from .callables import CallableSpecError, import_callable, n_positional
@@ -110,7 +110,7 @@ class Built(NamedTuple):
     bc: Dirichlet
     bc_fn: Callable[[float], Dirichlet]
     time_dependent: bool
-    solver: Newton
+    solver: PreparedSolver
     integrator: dynamics.Integrator | None
     x0: jax.Array
     v0: jax.Array | None
@@ -140,7 +140,7 @@ class Sharded(NamedTuple):
     potential: Potential
     bc: Dirichlet
     bc_fn: Callable[[float], Dirichlet]
-    solver: Newton
+    solver: PreparedSolver
     x0: jax.Array
     v0: jax.Array | None
     partition: Any

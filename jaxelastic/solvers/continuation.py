@@ -21,7 +21,7 @@ import jax.numpy as jnp
 
 from ..loads import Dirichlet
 from ..potential import Potential
-from .equilibrium import prepare_solver, solve
+from .equilibrium import PreparedSolver, prepare_solver, solve
 from .newton import Newton
 from .results import Solution, SolveError, Status
 
@@ -56,7 +56,7 @@ def solve_incremental(
     bc: Dirichlet,
     *,
     x0=None,
-    solver: Newton = Newton(),
+    solver: Newton | PreparedSolver = Newton(),
     steps: int = 1,
     min_increment: float = 1.0 / 1024,
     path: Callable[[float], Dirichlet] | None = None,
@@ -91,7 +91,7 @@ def solve_incremental(
         raise ValueError(f"min_increment must be in (0, 1], got {min_increment}")
     path = path if path is not None else scaled_dirichlet(pot.mesh, bc)
     x = pot.mesh.points if x0 is None else jnp.asarray(x0, pot.mesh.points.dtype)
-    solver = prepare_solver(solver, pot.mesh, path(1.0))
+    prepared = prepare_solver(solver, pot.mesh, path(1.0))
     f_full = pot.f_ext
     s, ds0 = 0.0, 1.0 / steps
     ds = ds0
@@ -108,7 +108,7 @@ def solve_incremental(
                 c = c.refreshed(x)  # them at x (host)
             c = (c.lag(x) if c.has_friction else c).at_time(s_try)
             p, x_start = p.replace(contact=c), c.make_feasible(x)
-        last = solve(p, path(s_try), x0=x_start, solver=solver, throw=False)
+        last = solve(p, path(s_try), x0=x_start, solver=prepared, throw=False)
         history.append(_record(s_try, last))
         if bool(last.ok):
             s, x = s_try, last.x

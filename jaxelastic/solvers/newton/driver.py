@@ -308,7 +308,7 @@ def _host_linear_step(s: Newton, lstate, pot: Potential, bc: Dirichlet, Ke, rhs,
             )
         dx, its, st = s.linear.host_step(lstate, box["data"], md, rhs, tol)
         stats = dict(iterations=its, residual=0.0)
-        return Solution(x=np.asarray(dx) * free, status=int(st), stats=stats)
+        return Solution(x=np.asarray(dx) * free, status=np.int32(st), stats=stats)  # type: ignore[arg-type]
 
     res = with_retry(attempt, rhs, traced=False, enabled=s.hessian != "projected")
     return res._replace(x=jnp.asarray(res.x, rhs.dtype))
