@@ -50,10 +50,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import materials, reference
-from .energy import energy, first_piola, forces, hvp
 from .io import write_json
-from .kinematics import deformation_gradients
 from .materials import Lame
+from .mechanics.kernels import energy, first_piola, forces, hvp
+from .mechanics.kinematics import deformation_gradients
 from .mesh import box, rectangle
 
 __all__ = [

@@ -13,8 +13,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from .kinematics import det
 from .materials import Lame
+from .mechanics.kinematics import det
 
 __all__ = ["isochoric_neo_hookean", "pendulum_velocity", "shear_wave"]
 

@@ -4,7 +4,8 @@
 ``(2, 2)`` in plane strain: embedded as ``diag(F, 1)``, see :mod:`jaxelastic.rubber`). Two
 fibre families with unit reference directions ``a01``, ``a02`` are part of the parameter
 pytree, either shared (shape ``(3,)``, for a single-F call) or per cell (shape
-``(n_cells, 3)``, the leading-axis convention of :func:`jaxelastic.energy.cell_params_axes`);
+``(n_cells, 3)``, the leading-axis convention of
+:func:`jaxelastic.mechanics.checks.cell_params_axes`);
 :func:`per_cell_fibres` broadcasts shared directions for use with a mesh. The directions
 are material (reference) vectors: the deformation maps them to ``F a0`` automatically, so
 rotating the mesh and the fibres together leaves the energy unchanged.
@@ -154,7 +155,7 @@ def holzapfel_gasser_ogden_params(**overrides) -> HolzapfelGasserOgden:
 def per_cell_fibres(params: HolzapfelGasserOgden, n_cells: int) -> HolzapfelGasserOgden:
     """``params`` with shared ``(3,)`` directions broadcast to ``(n_cells, 3)``.
 
-    :func:`jaxelastic.energy.energy` treats a non-scalar leaf as a per-cell field, so a
+    :func:`jaxelastic.mechanics.kernels.energy` treats a non-scalar leaf as a per-cell field, so a
     shared direction must be broadcast before a mesh-level call.
     """
 

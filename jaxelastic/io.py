@@ -43,8 +43,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .energy import cell_params_axes, check_positions, check_psi, first_piola, psi_name
-from .kinematics import deformation_gradients, det, green_strain
+from .mechanics.checks import cell_params_axes, check_positions, check_psi, psi_name
+from .mechanics.kernels import first_piola
+from .mechanics.kinematics import deformation_gradients, det, green_strain
 from .mesh import Mesh, MeshError, boundary_facets, from_arrays
 from .mesh.elements import ref_nodes
 

@@ -14,7 +14,7 @@ for P1 and composite cells, HRZ diagonal scaling for P2 (:func:`lumped_mass`); g
 mass × g by default, or the consistent ``∫ρ g N_a dV`` (``consistent=True``).
 
 The builders return NumPy arrays in the mesh's float dtype (so a float32 mesh gets float32
-loads and masses, which :class:`~jaxelastic.potential.Potential` requires) and refuse
+loads and masses, which :class:`~jaxelastic.mechanics.potential.Potential` requires) and refuse
 arguments of the wrong shape with a message naming the argument, the expected and the
 given shape.
 """
@@ -30,8 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .energy import check_positions, check_psi, first_piola, forces
-from .kinematics import deformation_gradients
+from .mechanics.checks import check_positions, check_psi
+from .mechanics.kernels import first_piola, forces
+from .mechanics.kinematics import deformation_gradients
 from .mesh import Mesh, boundary_facets
 from .mesh.elements import Element, facet_rule
 

@@ -37,7 +37,7 @@ from .fibres import fibre_pair as fibre_pair
 from .fibres import holzapfel_gasser_ogden as holzapfel_gasser_ogden
 from .fibres import holzapfel_gasser_ogden_params as holzapfel_gasser_ogden_params
 from .fibres import per_cell_fibres as per_cell_fibres
-from .kinematics import det, green_strain, small_strain, trace_S
+from .mechanics.kinematics import det, green_strain, small_strain, trace_S
 from .rubber import ArrudaBoyce as ArrudaBoyce
 from .rubber import Gent as Gent
 from .rubber import MooneyRivlin as MooneyRivlin

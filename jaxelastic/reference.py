@@ -23,8 +23,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .energy import cell_params_axes
-from .kinematics import cofactor, det, polar
+from .mechanics.checks import cell_params_axes
+from .mechanics.kinematics import cofactor, det, polar
 from .rubber import ARRUDA_BOYCE_COEFFS, embed_plane_strain
 
 __all__ = [

@@ -44,7 +44,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .kinematics import det
+from .mechanics.kinematics import det
 from .spectral import power, stretch_sum
 
 __all__ = [

@@ -6,7 +6,7 @@ every node and cell array into the *global padded layout* (shard ``s`` owns node
 ``[s·n_own, (s+1)·n_own)`` and cells ``[s·c_loc, (s+1)·c_loc)``), places each with
 ``NamedSharding(device_mesh, P("shards"))`` along its first axis (scalars replicated), and
 attaches a :class:`~jaxelastic.mesh.halo.Halo` to the mesh. The result is an ordinary
-:class:`~jaxelastic.potential.Potential` / :class:`~jaxelastic.loads.Dirichlet` pair:
+:class:`~jaxelastic.mechanics.potential.Potential` / :class:`~jaxelastic.loads.Dirichlet` pair:
 
 * ``je.solve(pot_s, bc_s)`` works unchanged (``linear="cg"``, ``"multilevel"``; ``"auto"``
   picks a device solver; the host ``"direct"``/``"amg"`` refuse at once), and so do
@@ -39,10 +39,10 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from .loads import Dirichlet
+from .mechanics.potential import Potential
 from .mesh import Mesh
 from .mesh.halo import Halo, build_halo, node_slots
 from .mesh.partition import METHODS, Partition, partition_mesh
-from .potential import Potential
 
 __all__ = [
     "shard",
@@ -154,7 +154,7 @@ def shard(
     renumbered, padded and placed here, in one pass a reader can check against the layout.
 
     Args:
-        pot: a concrete :class:`~jaxelastic.potential.Potential` (no contact term).
+        pot: a concrete :class:`~jaxelastic.mechanics.potential.Potential` (no contact term).
         bc: its :class:`~jaxelastic.loads.Dirichlet` data.
         devices: a device count N (first N of ``jax.devices()``; default all), a list of
             devices, or a one-axis :class:`jax.sharding.Mesh`.

@@ -57,7 +57,7 @@ import psutil  # noqa: E402
 
 import jaxelastic  # noqa: E402
 from jaxelastic.io import write_json  # noqa: E402
-from jaxelastic.kinematics import det  # noqa: E402
+from jaxelastic.mechanics.kinematics import det  # noqa: E402
 from jaxelastic.solvers.backends import available_direct_backends  # noqa: E402
 from jaxelastic.solvers.host import HostLinearSolver  # noqa: E402
 

@@ -93,7 +93,7 @@ def communication(pot, bc, linear) -> dict:
     import jax.numpy as jnp
 
     import jaxelastic as je
-    from jaxelastic import potential as pm
+    from jaxelastic.mechanics import potential as pm
     from jaxelastic.solvers.multilevel import sharded_preconditioner
 
     x = pot.mesh.points

@@ -92,7 +92,7 @@ def _communication(pot, x) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from jaxelastic import potential as P
+    from jaxelastic.mechanics import potential as P
 
     Ke = jax.jit(lambda p, y: P.elastic_element_hessians(p, y, False))(pot, x)
     kern = dict(

@@ -69,8 +69,8 @@ def _phase_split(pot, x, bc, host):
     import jax
     import jax.numpy as jnp
 
-    from jaxelastic import potential as P
-    from jaxelastic.energy import assemble
+    from jaxelastic.mechanics import assemble
+    from jaxelastic.mechanics import potential as P
     from jaxelastic.solvers.linear import block_jacobi, cg
 
     vg = jax.jit(lambda pot, x: (P.value(pot, x), P.gradient(pot, x)))
@@ -298,7 +298,7 @@ def parts_worker() -> dict:
 
     import jaxelastic as je
     from jaxelastic import loads, materials
-    from jaxelastic import potential as P
+    from jaxelastic.mechanics import potential as P
 
     mesh = je.box(40, 10, 10, size=(4.0, 1.0, 1.0))
     params = je.Lame(*je.lame(1e6, 0.3))

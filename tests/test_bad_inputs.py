@@ -1,4 +1,4 @@
-"""Bad input at the Python API gets a clear error before anything is compiled (issue 15).
+"""Bad input at the Python API gets a clear error before anything is compiled.
 
 One test per case, each asserting the message: positions and load arrays of the wrong
 shape, a ψ that does not return a scalar float, NaN/inf input outside jit (and NaN, not an
@@ -131,7 +131,7 @@ def test_shape_checks_are_static_under_jit_vmap_grad(square):
         f(jnp.zeros((9, 3)))
     pot = je.Potential(square, P2, f_ext=jnp.zeros((9, 2)), psi=M.linear)
     fs = jnp.zeros((3, 9, 2))
-    gs = jax.vmap(lambda f: je.potential.gradient(pot.replace(f_ext=f), X))(fs)
+    gs = jax.vmap(lambda f: je.mechanics.potential.gradient(pot.replace(f_ext=f), X))(fs)
     assert gs.shape == (3, 9, 2)
 
 
@@ -406,7 +406,7 @@ def test_read_mesh_of_other_empty_files_says_empty(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------
-# session 10 battery: refusals that used to end in a misleading status or a false SUCCESS
+# refusals that would otherwise end in a misleading status or a false SUCCESS
 # ----------------------------------------------------------------------------------------
 
 

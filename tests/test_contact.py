@@ -1,4 +1,4 @@
-"""Barrier contact against obstacles (issue 14, obstacle half): barrier, CCD, Hessian
+"""Barrier contact against obstacles: barrier, CCD, Hessian
 blocks, friction mollifier, static and dynamic solves with contact, gradients, Hertz.
 
 "No penetration ever" is checked on *every* distance the solver evaluates: the obstacles
@@ -17,8 +17,8 @@ import pytest
 
 import jaxelastic as je
 from jaxelastic import contact as jc
-from jaxelastic import potential as pot_mod
 from jaxelastic.contact import friction as fr
+from jaxelastic.mechanics import potential as pot_mod
 
 DHAT = 0.1
 

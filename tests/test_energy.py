@@ -16,8 +16,8 @@ from _common import IDS, MODEL_DIMS
 
 import jaxelastic as je
 from jaxelastic import materials as M
-from jaxelastic.energy import cell_params_axes
-from jaxelastic.kinematics import det
+from jaxelastic.mechanics import cell_params_axes
+from jaxelastic.mechanics.kinematics import det
 
 MU, LAM = 1.3, 2.9
 PARAMS = M.Lame(jnp.asarray(MU), jnp.asarray(LAM))

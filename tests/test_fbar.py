@@ -16,9 +16,9 @@ from jaxelastic import benchmarks as bm
 from jaxelastic import loads as L
 from jaxelastic import materials, scene
 from jaxelastic.io import cell_fields
-from jaxelastic.kinematics import b_bar, det, f_bar
+from jaxelastic.mechanics.kinematics import b_bar, det, f_bar
+from jaxelastic.mechanics.potential import Potential
 from jaxelastic.mesh import boundary_nodes
-from jaxelastic.potential import Potential
 
 # ------------------------------------------------------------------------- the F̄ maps
 

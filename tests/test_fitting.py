@@ -571,7 +571,7 @@ def mooney_rivlin(F_, p: MR):
     ``Ī₁ = J^(−2/3) I₁``, ``Ī₂ = J^(−4/3) I₂`` of C = FᵀF (2D: plane strain, F₃₃ = 1);
     +inf for J ≤ 0 (Holzapfel 2000, *Nonlinear Solid Mechanics*, §6.5, eq. 6.149)."""
     d = F_.shape[0]
-    J = je.kinematics.det(F_)
+    J = je.mechanics.kinematics.det(F_)
     C = F_.T @ F_
     I1 = jnp.trace(C) + (3 - d)
     I2 = 0.5 * (I1**2 - jnp.sum(C * C) - (3 - d))

@@ -50,7 +50,7 @@ def readme_problem(dtype):
     """The first example of the README (its own ψ, 1,920 tets, gravity) in ``dtype``."""
 
     def psi(F, p):
-        J = je.kinematics.det(F)
+        J = je.mechanics.kinematics.det(F)
         return p.mu / 2 * (J ** (-2 / 3) * jnp.sum(F * F) - 3) + p.lam / 2 * (J - 1) ** 2
 
     mesh = je.box(20, 4, 4, size=(5.0, 1.0, 1.0), dtype=dtype)

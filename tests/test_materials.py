@@ -12,7 +12,7 @@ from scipy.optimize import brentq
 
 from jaxelastic import materials as M
 from jaxelastic import reference
-from jaxelastic.kinematics import cofactor
+from jaxelastic.mechanics.kinematics import cofactor
 
 MU, LAM = 1.3, 2.9  # distinct values, so that a swapped μ/λ shows
 PARAMS = M.Lame(jnp.asarray(MU), jnp.asarray(LAM))

@@ -10,7 +10,7 @@ import jaxelastic as je
 from jaxelastic import benchmarks
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic import potential as P
+from jaxelastic.mechanics import potential as P
 from jaxelastic.solvers import cg
 from jaxelastic.solvers.multilevel import build_hierarchy, preconditioner
 
@@ -192,7 +192,7 @@ def test_projected_upper_by_blocks(beam, monkeypatch):
     failing cells only, padded; Python loops of compiled calls with tail blocks) assembles
     the upper data of projecting every cell, to round-off; cells that pass the test are
     the positive semidefinite ones."""
-    from jaxelastic.energy import project_psd
+    from jaxelastic.mechanics import project_psd
     from jaxelastic.solvers import newton as N
     from jaxelastic.solvers.linear import assemble_upper
 

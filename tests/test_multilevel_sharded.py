@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import jaxelastic as je
-from jaxelastic import potential as pm
 from jaxelastic.benchmarks.twist import twist
+from jaxelastic.mechanics import potential as pm
 from jaxelastic.solvers import cg
 from jaxelastic.solvers.multilevel import ShardedHierarchy, preconditioner, sharded_preconditioner
 

@@ -22,7 +22,7 @@ import jaxelastic as je
 from jaxelastic import CG, Newton, SolveError, Status, solve
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic.kinematics import deformation_gradients
+from jaxelastic.mechanics.kinematics import deformation_gradients
 
 E_MOD, NU = 1.0e4, 0.3
 MU, LAM = (float(v) for v in M.lame(E_MOD, NU))

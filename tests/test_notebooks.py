@@ -2,7 +2,7 @@
 
 The kernel is the interpreter running pytest: a throw-away kernel spec (argv
 ``sys.executable -m ipykernel_launcher``) in a temp dir put first on ``JUPYTER_PATH``, so a
-fresh ``python3 -m venv .venv && pip install -e .[dev]`` works whatever kernels are
+fresh ``python3 -m venv .venv && pip install -e '.[all,dev]'`` works whatever kernels are
 installed globally or per user. Each notebook runs in a temporary working directory, and
 the executed copy is never written back over the source.
 
@@ -33,7 +33,7 @@ CELL_TIMEOUT = 600  # seconds, per cell
 FAST_ENV = "JAXELASTIC_NOTEBOOK_FAST"
 # run only under -m slow: notebook 04 drives the accuracy and stability report scripts,
 # which tests/test_reports.py runs in the default run, and `mkdocs build` in .ci/run
-# executes it at full size (67 s of the default run's 15 min, session 5)
+# executes it at full size (67 s on the 2-core machine, 2026-12-02, commit 5628254)
 SLOW_ONLY = {"04_error_vs_runtime_and_stability"}
 
 

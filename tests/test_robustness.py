@@ -24,7 +24,7 @@ import jaxelastic as je
 from jaxelastic import dynamics as D
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic.kinematics import deformation_gradients
+from jaxelastic.mechanics.kinematics import deformation_gradients
 
 Status = je.Status
 

@@ -1,4 +1,4 @@
-"""Self-contact friction (issue 14, item 4): IPC's lagged smoothed Coulomb friction
+"""Self-contact friction: IPC's lagged smoothed Coulomb friction
 between boundary primitive pairs (:mod:`jaxelastic.contact.pair_friction`).
 
 Derivatives are checked against central differences per pair kind (3D point–triangle,

@@ -15,9 +15,9 @@ from jax.sharding import PartitionSpec as P
 
 import jaxelastic as je
 from jaxelastic import dynamics, loads
-from jaxelastic import potential as pm
 from jaxelastic.benchmarks.twist import twist
 from jaxelastic.materials import Lame
+from jaxelastic.mechanics import potential as pm
 from jaxelastic.mesh.partition import partition_mesh
 
 S = 4
@@ -211,7 +211,7 @@ def _loss_and_grad(pot, bc, to_nat, to_pad_cells, w):
     return jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))
 
 
-def test_gradient_matches_one_device(tw):  # issue 13 target, in CI (14 s)
+def test_gradient_matches_one_device(tw):
     """Newton-CG solve and its implicit gradient w.r.t. E and a per-cell field."""
     b, pot_s, bc_s, part = tw
     n_cells = b.pot.mesh.n_cells
@@ -230,7 +230,7 @@ def test_gradient_matches_one_device(tw):  # issue 13 target, in CI (14 s)
 
 
 @pytest.mark.slow  # 13-17 s; the static solve and its gradient stay in the default run
-def test_dynamic_step_matches_one_device():  # issue 13 target
+def test_dynamic_step_matches_one_device():
     mesh = je.box(3, 2, 2)  # 72 tets: 18 per shard
     mass = jnp.asarray(loads.lumped_mass(mesh, 1.0))
     g = jnp.asarray(loads.gravity_load(mesh, 1.0, (0.0, 0.0, -9.81)))

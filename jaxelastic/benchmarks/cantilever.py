@@ -17,8 +17,8 @@ import numpy as np
 
 from .. import loads
 from ..materials import Lame, lame, linear
+from ..mechanics.potential import Potential
 from ..mesh import box, rectangle
-from ..potential import Potential
 from .problem import Benchmark, edge_load_2d
 
 __all__ = [

@@ -25,8 +25,8 @@ import numpy as np
 
 from .. import loads
 from ..materials import Lame, lame, linear, neo_hookean
+from ..mechanics.potential import Potential
 from ..mesh import cook_membrane
-from ..potential import Potential
 from .problem import Benchmark, node_at
 
 __all__ = [

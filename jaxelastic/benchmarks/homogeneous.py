@@ -15,8 +15,8 @@ import numpy as np
 
 from .. import loads
 from ..materials import Lame, lame, neo_hookean
+from ..mechanics.potential import Potential
 from ..mesh import boundary_nodes, box
-from ..potential import Potential
 from .problem import Benchmark, node_at
 
 __all__ = ["uniaxial_tension", "simple_shear", "pull_bc", "pull_nodes"]

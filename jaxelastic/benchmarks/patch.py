@@ -16,8 +16,8 @@ import numpy as np
 
 from .. import loads
 from ..materials import BUILTIN, Lame, lame, linear
+from ..mechanics.potential import Potential
 from ..mesh import Mesh, from_arrays
-from ..potential import Potential
 from .problem import Benchmark
 
 __all__ = [

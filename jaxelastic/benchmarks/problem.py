@@ -8,8 +8,8 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 from ..loads import Dirichlet
+from ..mechanics.potential import Potential
 from ..mesh import Mesh
-from ..potential import Potential
 
 __all__ = ["Benchmark", "node_at", "edge_load_2d"]
 

@@ -13,10 +13,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import loads
-from ..kinematics import det
 from ..materials import Lame
+from ..mechanics.kinematics import det
+from ..mechanics.potential import Potential
 from ..mesh import box
-from ..potential import Potential
 from .problem import Benchmark
 
 __all__ = ["TWIST_THETA", "twist", "twist_displacement", "isochoric_neo_hookean"]

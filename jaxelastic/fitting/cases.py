@@ -25,7 +25,7 @@ import numpy as np
 
 from ..dynamics import Integrator, State, rollout
 from ..loads import Dirichlet
-from ..potential import Potential
+from ..mechanics.potential import Potential
 from ..solvers import ImplicitAdjoint, Newton, Status, bind_solver, solve
 from .observations import observation_loss
 

@@ -193,7 +193,7 @@ class Halo:
     def displacements(self, x_own: jax.Array, points_own: jax.Array) -> jax.Array:
         """Local displacements ``(n_local, dim)`` of owned positions: ``u = x − X`` on the
         owned block (in the rest points' dtype, as
-        :func:`~jaxelastic.kinematics.displacements`), then :meth:`gather`."""
+        :func:`~jaxelastic.mechanics.kinematics.displacements`), then :meth:`gather`."""
         u = x_own - points_own
         return self.gather(u if u.dtype == points_own.dtype else u.astype(points_own.dtype))
 

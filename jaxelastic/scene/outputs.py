@@ -22,9 +22,9 @@ import numpy as np
 
 from .. import loads
 from .. import plot as _plot
-from ..energy import energy
 from ..io import TimeSeriesWriter, stress_fields, to_jsonable, write_atomic, write_json
 from ..loads import Dirichlet
+from ..mechanics.kernels import energy
 from .build import Built, linear_solver_name
 from .errors import SceneError
 from .load import Scene

@@ -20,7 +20,7 @@ from collections.abc import Callable
 import jax.numpy as jnp
 
 from ..loads import Dirichlet
-from ..potential import Potential
+from ..mechanics.potential import Potential
 from .newton import Newton
 from .results import Solution, SolveError, Status
 from .solve import bind_solver, solve

@@ -16,7 +16,7 @@ through :func:`jax.pure_callback` only to
 
 The host runs no Krylov loop and never modifies the Hessian: when :meth:`factor` reports
 :data:`NOT_POSITIVE_DEFINITE`, the caller projects the element Hessians
-(:func:`jaxelastic.energy.project_psd`) and factorises again. On CPU nothing is copied
+(:func:`jaxelastic.mechanics.psd.project_psd`) and factorises again. On CPU nothing is copied
 across devices.
 
 Status codes (members of :class:`jaxelastic.Status`): :data:`SUCCESS` = 0,

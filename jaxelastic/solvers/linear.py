@@ -34,7 +34,7 @@ from jax import lax
 from jax.core import Tracer
 
 from ..distributed import host_array
-from ..potential import (
+from ..mechanics.potential import (
     Potential,
     mass_diagonal,
     node_hessian_blocks,

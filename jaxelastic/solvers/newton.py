@@ -47,13 +47,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from .. import potential as pot_mod
 from ..contact.barrier import kappa_update
-from ..energy import hvp, project_element_psd, project_psd
-from ..fusion import always, computed
-from ..kinematics import deformation_gradients, det
 from ..loads import Dirichlet
-from ..potential import Potential
+from ..mechanics import potential as pot_mod
+from ..mechanics.fusion import always, computed
+from ..mechanics.kernels import hvp
+from ..mechanics.kinematics import deformation_gradients, det
+from ..mechanics.potential import Potential
+from ..mechanics.psd import project_element_psd, project_psd
 from .heap import release_free_memory
 from .linear import NewtonSystem, assemble_upper
 from .results import RUNNING, Solution, Status

@@ -21,10 +21,11 @@ import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from .. import potential as pm
-from ..energy import element_hessians, hvp
 from ..loads import Dirichlet
-from ..potential import Potential
+from ..mechanics import potential as pm
+from ..mechanics.hessians import element_hessians
+from ..mechanics.kernels import hvp
+from ..mechanics.potential import Potential
 from ..sharding import collective_bytes
 from .linear import block_jacobi, cg
 
@@ -60,7 +61,7 @@ def communication(pot_s: Potential, bc_s: Dirichlet, *, layouts=LAYOUTS, repeat:
     and the warm time of each, for several layouts (see :func:`layout`).
 
     For each layout: ``hvp`` (one :func:`~jaxelastic.hvp`), ``matvec`` (one CG matvec
-    from element Hessians, :func:`~jaxelastic.potential.element_hessian_vp`) and
+    from element Hessians, :func:`~jaxelastic.mechanics.potential.element_hessian_vp`) and
     ``cg_iteration`` (one iteration of block-Jacobi CG, the ``while`` body of
     :func:`~jaxelastic.solvers.linear.cg`): :func:`collective_bytes` dicts (per device)
     plus ``time_s`` (min over ``repeat`` runs of 10 calls, divided by 10) for ``hvp`` and

@@ -17,7 +17,7 @@ load term and statics no inertia.
 Construction checks (static shapes and dtypes only, so also free under jit/vmap, where the
 per-example shapes are checked): ``f_ext``, ``x_tilde``, ``x_prev`` must be
 ``(n_nodes, dim)`` like ``mesh.points``, ``mass`` ``(n_nodes,)``, the scalars ``()``; ψ
-must return a scalar float (:func:`~jaxelastic.energy.check_psi`, cached per ψ). The
+must return a scalar float (:func:`~jaxelastic.mechanics.checks.check_psi`, cached per ψ). The
 mesh's float dtype is the working precision: a float leaf that would widen it (a float64
 ``f_ext`` or parameter on a float32 mesh with x64 enabled) is refused, because it would
 silently promote the solve and break its loops; narrower leaves are promoted exactly.
@@ -33,18 +33,11 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from .energy import (
-    Psi,
-    assemble,
-    check_psi,
-    element_hessians,
-    energy,
-    forces,
-    hvp,
-    project_element_psd,
-    project_psd,
-)
-from .mesh import Mesh
+from ..mesh import Mesh
+from .checks import check_psi
+from .hessians import element_hessians
+from .kernels import Psi, assemble, energy, forces, hvp
+from .psd import project_element_psd, project_psd
 
 __all__ = [
     "Potential",
@@ -162,7 +155,8 @@ def check_potential(pot: Potential) -> None:
     Raises:
         ValueError: a field of the wrong shape (the message names the field, the expected
             and the given shape), or a float leaf wider than the mesh's dtype (naming both).
-        TypeError: ψ does not return a scalar float (see :func:`~jaxelastic.energy.check_psi`).
+        TypeError: ψ does not return a scalar float (see
+            :func:`~jaxelastic.mechanics.checks.check_psi`).
     """
     pts: Any = getattr(pot.mesh, "points", None)
     if not is_array(pts) or len(pts.shape) != 2 or not is_array(pot.mesh.cells):
@@ -339,18 +333,18 @@ def _local_blocks(hl, loc: Mesh, pts, Ke):
 
 
 def projection_dim(pot: Potential) -> int:
-    """The ``dim`` for :func:`~jaxelastic.energy.project_element_psd` of this potential's
+    """The ``dim`` for :func:`~jaxelastic.mechanics.psd.project_element_psd` of this potential's
     element Hessians (:func:`elastic_element_hessians`): the mesh's dimension where
     elasticity alone contributes (the rigid translations are in every Hessian's kernel),
     0 with a contact term (its per-node blocks are not translation-invariant:
-    :func:`~jaxelastic.energy.project_psd`)."""
+    :func:`~jaxelastic.mechanics.psd.project_psd`)."""
     return pot.mesh.dim if pot.contact is None else 0
 
 
 def projected_element_hessians(pot: Potential, Ke: jax.Array) -> jax.Array:
     """The PSD projection of element Hessians from :func:`elastic_element_hessians`:
-    :func:`~jaxelastic.energy.project_element_psd` (the translations taken out first,
-    exact) or :func:`~jaxelastic.energy.project_psd`, as :func:`projection_dim` says.
+    :func:`~jaxelastic.mechanics.psd.project_element_psd` (the translations taken out first,
+    exact) or :func:`~jaxelastic.mechanics.psd.project_psd`, as :func:`projection_dim` says.
 
     Args:
         Ke: ``(n_cells, k·dim, k·dim)``.
