@@ -19,7 +19,6 @@ from . import io as io
 from . import loads as loads
 from . import materials as materials
 from . import mesh as mesh
-from . import reference as reference
 from . import sharding as sharding
 from . import solvers as solvers
 from .dynamics import Integrator as Integrator
@@ -28,6 +27,7 @@ from .io import write_vtu as write_vtu
 from .loads import Dirichlet as Dirichlet
 from .materials import Lame as Lame
 from .materials import lame as lame
+from .materials import reference as reference
 from .mechanics import kinematics as kinematics
 from .mechanics import potential as potential
 from .mechanics.hessians import element_hessians as element_hessians

@@ -4,7 +4,7 @@ Everything jaxelastic computes (stress, forces, Hessian-vector products) is obta
 differentiating ψ with JAX. This module checks, for every built-in model, that
 
 * **P** — the autodiff stress ``first_piola(psi)(F)`` equals the hand-derived closed form
-  :data:`jaxelastic.reference.HAND_P` to ≤ 1e-12 (relative, float64) over a battery of
+  :data:`jaxelastic.materials.reference.HAND_P` to ≤ 1e-12 (relative, float64) over a battery of
   deformation gradients: identity, pure rotations, uniaxial stretch up to 5×, compression
   to 0.05×, simple shear, repeated singular values, near inversion (J = 1e-3), inverted
   states (J < 0) and seeded random F;
@@ -14,7 +14,7 @@ differentiating ψ with JAX. This module checks, for every built-in model, that
 * **hvp-FD** — :func:`jaxelastic.hvp` applied to every unit vector equals minus the
   central difference of the forces (the full Hessian, both ways);
 * **five-step** — the lecture notes' hand force recipe
-  :func:`jaxelastic.reference.five_step_forces` with the hand P equals autodiff
+  :func:`jaxelastic.materials.reference.five_step_forces` with the hand P equals autodiff
   :func:`jaxelastic.forces` (≤ 1e-12 relative).
 
 Relative difference of an autodiff value ``a`` against a reference ``b``::
@@ -49,9 +49,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import materials, reference
+from . import materials
 from .io import write_json
-from .materials import Lame
+from .materials import Lame, reference
 from .mechanics.kernels import energy, first_piola, forces, hvp
 from .mechanics.kinematics import deformation_gradients
 from .mesh import box, rectangle

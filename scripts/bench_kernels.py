@@ -77,8 +77,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxelastic as je
-from jaxelastic import materials, reference
+from jaxelastic import materials
 from jaxelastic.io import write_json
+from jaxelastic.materials import reference
 from jaxelastic.mechanics import cell_params_axes, element_gradient_kernel, kinematics
 
 SIZES = {"small": (10_000,), "medium": (10_000, 100_000), "all": (10_000, 100_000, 1_000_000)}

@@ -1,4 +1,4 @@
-"""Rubber and soft-tissue models (jaxelastic.rubber, jaxelastic.fibres).
+"""Rubber and soft-tissue models (jaxelastic.materials.rubber, jaxelastic.materials.fibres).
 
 Rest state, linearisation to the stated shear and bulk moduli, frame invariance, finite
 Hessians at F = I and at repeated stretches (Ogden's principal stretches), closed-form
@@ -20,9 +20,9 @@ from scipy.optimize import brentq, least_squares
 import jaxelastic as je
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic import reference
+from jaxelastic.materials import reference
+from jaxelastic.materials.rubber import ARRUDA_BOYCE_COEFFS
 from jaxelastic.mechanics import cell_params_axes
-from jaxelastic.rubber import ARRUDA_BOYCE_COEFFS
 
 NAMES = tuple(M.FAMILIES)
 RUBBER = tuple(n for n in NAMES if n != "holzapfel_gasser_ogden")

@@ -42,6 +42,5 @@ from .problem import Benchmark as Benchmark
 from .problem import edge_load_2d as edge_load_2d
 from .problem import node_at as node_at
 from .twist import TWIST_THETA as TWIST_THETA
-from .twist import isochoric_neo_hookean as isochoric_neo_hookean
 from .twist import twist as twist
 from .twist import twist_displacement as twist_displacement

@@ -2,6 +2,7 @@
 
 Unit cube ``box(n, n, n)``, face x = 1 clamped, face x = 0 given u_x = 0 and half of a 60°
 rotation about the x axis through (y, z) = (0.5, 0.5); isochoric neo-Hookean
+(:func:`~jaxelastic.materials.isotropic.isochoric_neo_hookean`)
 ψ = μ/2 (J^(−2/3) I_C − 3) + κ/2 (J − 1)² with E = 10, ν = 0.3, κ = E/(3(1 − 2ν)) (the
 hyperelasticity example of JAX-FEM, Xue et al. 2023, Comput. Phys. Commun. 291:108802).
 No closed form: score against a fine-mesh solution.
@@ -9,17 +10,15 @@ No closed form: score against a fine-mesh solution.
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 import numpy as np
 
 from .. import loads
-from ..materials import Lame
-from ..mechanics.kinematics import det
+from ..materials import Lame, isochoric_neo_hookean
 from ..mechanics.potential import Potential
 from ..mesh import box
 from .problem import Benchmark
 
-__all__ = ["TWIST_THETA", "twist", "twist_displacement", "isochoric_neo_hookean"]
+__all__ = ["TWIST_THETA", "twist", "twist_displacement"]
 
 TWIST_THETA = np.pi / 3  # the full rotation angle; the face x = 0 turns by half of it
 
@@ -36,13 +35,6 @@ def twist_displacement(X, theta: float = TWIST_THETA):
         ],
         1,
     )
-
-
-def isochoric_neo_hookean(F, p: Lame):
-    """ψ = μ/2 (J^(−2/3) I_C − 3) + κ/2 (J − 1)² [energy/volume], with κ passed as
-    ``p.lam`` (the twist benchmark's user material)."""
-    J = det(F)
-    return p.mu / 2 * (J ** (-2.0 / 3.0) * jnp.sum(F * F) - 3) + p.lam / 2 * (J - 1) ** 2
 
 
 def twist(n: int, **mesh_kw) -> Benchmark:

@@ -1,38 +1,18 @@
 """User-style functions referenced by the shipped scene files as ``"module:function"``.
 
-They show what a scene's ``module:function`` entries expect:
+They show what a scene's ``module:function`` entries expect (a user strain-energy density
+``psi(F, params) -> scalar`` is shown by ``jaxelastic.materials:isochoric_neo_hookean``,
+the material of the twist scene):
 
-* a strain-energy density ``psi(F, params) -> scalar`` for one ``(d, d)`` F, written with
-  ``jax.numpy`` (the scene passes ``params = Lame(mu, lam)``);
 * an initial velocity ``v(X) -> (m, dim)`` of the rest positions ``X`` ``(m, dim)``;
 * a prescribed displacement ``u(X) -> (m, dim)`` or, in dynamic scenes, ``u(X, t)``.
 """
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 import numpy as np
 
-from .materials import Lame
-from .mechanics.kinematics import det
-
-__all__ = ["isochoric_neo_hookean", "pendulum_velocity", "shear_wave"]
-
-
-def isochoric_neo_hookean(F, params: Lame):
-    """Isochoric neo-Hookean ``ψ = μ/2 (J^(−2/d)·tr(FᵀF) − d) + κ/2 (J − 1)²``.
-
-    The hyperelasticity demo of JAX-FEM (the "twist" benchmark). ``params.mu`` is the
-    shear modulus μ and ``params.lam`` carries the **bulk modulus** κ (not Lamé's λ).
-    Undefined for J ≤ 0: returns ``+inf`` there, like the built-in neo-Hookean.
-    """
-    d = F.shape[0]
-    J = det(F)
-    ok = J > 0
-    Js = jnp.where(ok, J, 1.0)
-    IC = jnp.sum(F * F)
-    psi = 0.5 * params.mu * (Js ** (-2.0 / d) * IC - d) + 0.5 * params.lam * (J - 1.0) ** 2
-    return jnp.where(ok, psi, jnp.inf)
+__all__ = ["pendulum_velocity", "shear_wave"]
 
 
 def pendulum_velocity(X):

@@ -1,7 +1,7 @@
 """Fibre-reinforced soft tissue: the Holzapfel–Gasser–Ogden model with fibre dispersion.
 
 ``holzapfel_gasser_ogden(F, params)`` is a plain ψ for one unbatched F (``(3, 3)``, or
-``(2, 2)`` in plane strain: embedded as ``diag(F, 1)``, see :mod:`jaxelastic.rubber`). Two
+``(2, 2)`` in plane strain: embedded as ``diag(F, 1)``, see :mod:`jaxelastic.materials.rubber`). Two
 fibre families with unit reference directions ``a01``, ``a02`` are part of the parameter
 pytree, either shared (shape ``(3,)``, for a single-F call) or per cell (shape
 ``(n_cells, 3)``, the leading-axis convention of
@@ -105,7 +105,7 @@ def holzapfel_gasser_ogden(F: jax.Array, params: HolzapfelGasserOgden) -> jax.Ar
     ``Ē_i = κ(Ī₁ − 3) + (1 − 3κ)(Ī_{4,i} − 1)``, ``Ī_{4,i} = a0i · C̄ a0i``; the isochoric
     invariants of the decoupled form (Holzapfel, Gasser & Ogden 2000, *J. Elasticity* 61:1,
     §4, κ = 0; dispersion: Gasser, Ogden & Holzapfel 2006, *J. R. Soc. Interface* 3:15,
-    §2); ``U(J) = bulk/4 (J² − 1 − 2 ln J)`` as in :mod:`jaxelastic.rubber`.
+    §2); ``U(J) = bulk/4 (J² − 1 − 2 ln J)`` as in :mod:`jaxelastic.materials.rubber`.
 
     Tension only: a fibre family contributes only when ``Ē_i > 0`` (the Macaulay bracket;
     for κ = 0 that is exactly ``Ī₄ > 1``, fibres stretched). The switch is C¹: ψ and P are

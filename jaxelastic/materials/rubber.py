@@ -44,7 +44,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .mechanics.kinematics import det
+from ..mechanics.kinematics import det
 from .spectral import power, stretch_sum
 
 __all__ = [
@@ -236,8 +236,8 @@ def ogden(F: jax.Array, params: Ogden) -> jax.Array:
     Ogden 1972, *Proc. R. Soc. Lond. A* 326:565; modified stretches
     ``λ̄_i = J^{-1/3} λ_i`` (Holzapfel 2000, §6.5). Shear modulus μ = ½ Σ μ_p α_p.
     ``Σ_i λ̄_i^α = J^{-α/3} Σ_i c_i^{α/2}`` over the eigenvalues c_i of C = FᵀF, evaluated
-    with :func:`jaxelastic.spectral.stretch_sum` (from an SVD of F), whose custom JVP keeps
-    the gradient, Hessian and HVP finite at repeated stretches (F = I, uniaxial,
+    with :func:`jaxelastic.materials.spectral.stretch_sum` (from an SVD of F), whose custom JVP
+    keeps the gradient, Hessian and HVP finite at repeated stretches (F = I, uniaxial,
     equibiaxial) and makes the α_p differentiable. F: ``(d, d)``; ψ [stress].
     """
     ok, F3, J = safe_state(F)

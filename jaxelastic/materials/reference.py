@@ -7,12 +7,13 @@ independently from the closed forms of the literature, not derived from the ψ c
   course notes), §3 (linear, StVK, neo-Hookean) and §5 (corotated); Stomakhin et al. 2012
   (fixed corotated); Kim & Eberle 2022, §7 (stable neo-Hookean); Smith, de Goes & Kim 2018
   (stable neo-Hookean with log term).
-* Rubber and tissue (:mod:`jaxelastic.rubber`, :mod:`jaxelastic.fibres`): P written from the
-  invariant derivatives ``∂Ī₁/∂F = J^{-2/3}(2F − ⅔ I₁ F⁻ᵀ)``, ``∂Ī₂/∂F = J^{-4/3}(2(I₁F −
-  FC) − ⁴⁄₃ I₂ F⁻ᵀ)``, ``∂Ī₄/∂F = J^{-2/3}(2F a⊗a − ⅔ I₄ F⁻ᵀ)`` and ``∂U/∂F = κ/2 (J² − 1)
-  F⁻ᵀ`` (Holzapfel 2000, *Nonlinear Solid Mechanics*, §6.4–6.5); Ogden in principal
-  stretches from an SVD, ``P = U diag(∂ψ/∂λ_i) Vᵀ`` (Ogden 1984, *Non-linear Elastic
-  Deformations*, §4.3). 2D is plane strain: the (2, 2) block of the 3D P of ``diag(F, 1)``.
+* Rubber and tissue (:mod:`jaxelastic.materials.rubber`, :mod:`jaxelastic.materials.fibres`):
+  P written from the invariant derivatives ``∂Ī₁/∂F = J^{-2/3}(2F − ⅔ I₁ F⁻ᵀ)``,
+  ``∂Ī₂/∂F = J^{-4/3}(2(I₁F − FC) − ⁴⁄₃ I₂ F⁻ᵀ)``, ``∂Ī₄/∂F = J^{-2/3}(2F a⊗a − ⅔ I₄ F⁻ᵀ)``
+  and ``∂U/∂F = κ/2 (J² − 1) F⁻ᵀ`` (Holzapfel 2000, *Nonlinear Solid Mechanics*,
+  §6.4–6.5); Ogden in principal stretches from an SVD, ``P = U diag(∂ψ/∂λ_i) Vᵀ`` (Ogden
+  1984, *Non-linear Elastic Deformations*, §4.3). 2D is plane strain: the (2, 2) block of
+  the 3D P of ``diag(F, 1)``.
 * Five-step recipe (Sifakis & Barbič 2012, §4.4, Algorithm 1): ``Ds``, ``F = Ds·Dm⁻¹``,
   ``P(F)``, ``H = −W·P·Dm⁻ᵀ``; the columns of H are the forces on nodes 1..d and
   ``f₀ = −Σ columns``, accumulated per vertex.
@@ -23,8 +24,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .mechanics.checks import cell_params_axes
-from .mechanics.kinematics import cofactor, det, polar
+from ..mechanics.checks import cell_params_axes
+from ..mechanics.kinematics import cofactor, det, polar
 from .rubber import ARRUDA_BOYCE_COEFFS, embed_plane_strain
 
 __all__ = [
