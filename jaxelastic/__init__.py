@@ -12,14 +12,12 @@ The library never changes JAX's global configuration: enable float64 yourself wi
 
 from . import benchmarks as benchmarks
 from . import contact as contact
-from . import distributed as distributed
 from . import dynamics as dynamics
 from . import fitting as fitting
 from . import io as io
 from . import loads as loads
 from . import materials as materials
 from . import mesh as mesh
-from . import sharding as sharding
 from . import solvers as solvers
 from .dynamics import Integrator as Integrator
 from .io import read_mesh as read_mesh
@@ -51,8 +49,10 @@ from .mesh import from_arrays as from_arrays
 from .mesh import rectangle as rectangle
 from .mesh import to_quadratic as to_quadratic
 from .mesh import with_formulation as with_formulation
-from .sharding import Partition as Partition
-from .sharding import shard as shard
+from .parallel import distributed as distributed
+from .parallel import sharding as sharding
+from .parallel.sharding import Partition as Partition
+from .parallel.sharding import shard as shard
 from .solvers import AMG as AMG
 from .solvers import CG as CG
 from .solvers import Direct as Direct

@@ -1,8 +1,8 @@
-"""Across processes: :mod:`jaxelastic.distributed` and a 2-process sharded twist.
+"""Across processes: :mod:`jaxelastic.parallel.distributed` and a 2-process sharded twist.
 
 Fast: reading the environment (``JAX_*`` variables, a SLURM step, incomplete or
 inconsistent settings refused with the variable named), the one-process no-op and
-:func:`~jaxelastic.distributed.host_array`.
+:func:`~jaxelastic.parallel.distributed.host_array`.
 
 Slow: ``scripts/distributed_twist.py`` started as two processes on localhost (one CPU
 device each, gloo collectives, a free port), solving the twist sharded across them; the
@@ -28,7 +28,7 @@ import pytest
 
 import jaxelastic as je
 from jaxelastic import benchmarks
-from jaxelastic.distributed import (
+from jaxelastic.parallel.distributed import (
     DistributedError,
     environment,
     host_array,

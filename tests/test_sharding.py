@@ -18,7 +18,7 @@ from jaxelastic import dynamics, loads
 from jaxelastic.benchmarks.twist import twist
 from jaxelastic.materials import Lame
 from jaxelastic.mechanics import potential as pm
-from jaxelastic.mesh.partition import partition_mesh
+from jaxelastic.parallel.partition import partition_mesh
 
 S = 4
 

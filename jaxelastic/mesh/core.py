@@ -61,7 +61,7 @@ class Mesh:
             (F̄ = (J̄/J)^{1/d} F with J̄ the cell average of J, see
             :func:`~jaxelastic.mechanics.kinematics.deformation_gradients`), or ``"bbar"`` (its
             small-strain analogue for small-strain materials, Hughes 1980).
-        halo: a :class:`~jaxelastic.mesh.halo.Halo` when the mesh is sharded over devices
+        halo: a :class:`~jaxelastic.parallel.halo.Halo` when the mesh is sharded over devices
             (:func:`jaxelastic.shard`: the energy kernels then run per shard under
             ``shard_map`` and exchange interface nodes only), else None.
     """

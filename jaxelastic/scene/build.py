@@ -132,7 +132,7 @@ class Sharded(NamedTuple):
         bc_fn: ``s ↦`` sharded Dirichlet data (as :attr:`Built.bc_fn`);
         solver: the Newton solver bound to the sharded mesh;
         x0: ``(S·n_own, dim)`` padded rest positions; v0: padded initial velocities or None;
-        partition: the :class:`~jaxelastic.mesh.partition.Partition`;
+        partition: the :class:`~jaxelastic.parallel.partition.Partition`;
         devices: the devices used (``str`` of each);
         rest: ``(S·n_own, dim)`` NumPy padded rest positions (where padded nodes are fixed).
     """
@@ -785,8 +785,8 @@ def check_devices(n: int) -> list:
             f"{n} devices asked for, but JAX sees {len(devs)} ({kind}): for host CPU devices "
             f"start with XLA_FLAGS={HOST_DEVICES_FLAG}={n} in the environment (before JAX "
             "starts); for several GPUs or hosts, launch one process per device and call "
-            "jaxelastic.distributed.initialize_from_env() (see the guide 'Many devices and "
-            "hosts')"
+            "jaxelastic.parallel.distributed.initialize_from_env() (see the guide 'Many "
+            "devices and hosts')"
         )
     return list(devs[:n])
 
@@ -813,7 +813,7 @@ def _padded_dirichlet(part, bc: Dirichlet, X_pad: np.ndarray, like: Dirichlet) -
 
 def _shard(scene: Scene, pot: Potential, bc_fn, bc: Dirichlet, v0) -> Sharded:
     """The :class:`Sharded` parts of a scene with ``[solver] devices > 1``."""
-    from ..sharding import shard
+    from ..parallel.sharding import shard
 
     n = scene.spec.solver.devices
     key = "[solver].devices"  # (host linear solvers and [fit] are refused by the schema)

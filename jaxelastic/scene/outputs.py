@@ -248,7 +248,7 @@ def partition_report(built: Built) -> dict | None:
     """How a scene with ``[solver] devices > 1`` was split (None on one device): the
     devices, the method and, per shard, cells, owned nodes, ghost and interface nodes and
     the halo bytes one exchange of a nodal vector receives
-    (:meth:`~jaxelastic.mesh.partition.Partition.stats`)."""
+    (:meth:`~jaxelastic.parallel.partition.Partition.stats`)."""
     sh = built.shard
     if sh is None:
         return None

@@ -33,14 +33,14 @@ import numpy as np
 from jax import lax
 from jax.core import Tracer
 
-from ..distributed import host_array
 from ..mechanics.potential import (
     Potential,
     mass_diagonal,
     node_hessian_blocks,
     projected_element_hessians,
 )
-from ..sharding import is_sharded
+from ..parallel.distributed import host_array
+from ..parallel.sharding import is_sharded
 from .backends import available_direct_backends
 from .blocks import block_inverse_or_diagonal
 from .host import ContentCache, HostLinearSolver, content_key

@@ -17,12 +17,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
-from ..distributed import host_array
 from ..loads import Dirichlet
 from ..materials import Lame, check_lame
 from ..mechanics.checks import check_psi
 from ..mechanics.potential import Potential, is_array
 from ..mesh import Mesh
+from ..parallel.distributed import host_array
 from .adjoint import ImplicitAdjoint, differentiable_minimize
 from .linear import AMG, Direct, bind_linear
 from .newton import Newton, host_minimize, is_quadratic

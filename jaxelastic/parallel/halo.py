@@ -1,7 +1,7 @@
 """Halo exchange for a mesh sharded over devices: local tables and the ghost-node traffic.
 
 A sharded mesh (:func:`jaxelastic.shard`) keeps the global padded layout of
-:mod:`jaxelastic.mesh.partition`: shard ``s`` owns nodes ``[s·n_own, (s+1)·n_own)`` and
+:mod:`jaxelastic.parallel.partition`: shard ``s`` owns nodes ``[s·n_own, (s+1)·n_own)`` and
 cells ``[s·c_loc, (s+1)·c_loc)``. A :class:`Halo` adds what a shard needs to work on its
 cells alone under ``jax.shard_map``:
 
@@ -31,7 +31,7 @@ import numpy as np
 from jax import lax
 from jax.sharding import PartitionSpec as P
 
-from .core import Mesh
+from ..mesh.core import Mesh
 from .partition import Partition
 
 __all__ = ["Halo", "build_halo", "node_slots"]
@@ -245,7 +245,7 @@ def build_halo(part: Partition, device_mesh, axis: str) -> Halo:
     places them on the devices).
 
     Args:
-        part: the :class:`~jaxelastic.mesh.partition.Partition`.
+        part: the :class:`~jaxelastic.parallel.partition.Partition`.
         device_mesh: a :class:`jax.sharding.Mesh` with ``part.n_shards`` devices on ``axis``.
         axis: its axis name.
     """

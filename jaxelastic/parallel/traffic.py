@@ -1,8 +1,8 @@
-"""Communication volume of a sharded problem, counted in compiled HLO (issue 13).
+"""Communication volume of a sharded problem, counted in compiled HLO.
 
 :func:`communication` compiles one HVP, one CG matvec and one block-Jacobi CG iteration of
 a problem from :func:`jaxelastic.shard` in three layouts and sums the operand bytes of
-their collectives (:func:`jaxelastic.sharding.collective_bytes`), with warm times:
+their collectives (:func:`jaxelastic.parallel.sharding.collective_bytes`), with warm times:
 
 * ``"halo"``: as :func:`~jaxelastic.shard` made it (shard_map, ghost nodes by ppermute);
 * ``"xla"``: the same sharded arrays without the halo (XLA inserts the communication);
@@ -26,8 +26,8 @@ from ..mechanics import potential as pm
 from ..mechanics.hessians import element_hessians
 from ..mechanics.kernels import hvp
 from ..mechanics.potential import Potential
-from ..sharding import collective_bytes
-from .linear import block_jacobi, cg
+from ..solvers.linear import block_jacobi, cg
+from .sharding import collective_bytes
 
 __all__ = ["communication", "layout", "LAYOUTS"]
 

@@ -1,11 +1,11 @@
 """One mesh over many devices: :func:`shard` a potential and its Dirichlet data.
 
 ``pot_s, bc_s, part = je.shard(pot, bc, devices=4)`` partitions the mesh
-(:mod:`jaxelastic.mesh.partition`: METIS or a space-filling curve), renumbers and pads
+(:mod:`jaxelastic.parallel.partition`: METIS or a space-filling curve), renumbers and pads
 every node and cell array into the *global padded layout* (shard ``s`` owns nodes
 ``[s·n_own, (s+1)·n_own)`` and cells ``[s·c_loc, (s+1)·c_loc)``), places each with
 ``NamedSharding(device_mesh, P("shards"))`` along its first axis (scalars replicated), and
-attaches a :class:`~jaxelastic.mesh.halo.Halo` to the mesh. The result is an ordinary
+attaches a :class:`~jaxelastic.parallel.halo.Halo` to the mesh. The result is an ordinary
 :class:`~jaxelastic.mechanics.potential.Potential` / :class:`~jaxelastic.loads.Dirichlet` pair:
 
 * ``je.solve(pot_s, bc_s)`` works unchanged (``linear="cg"``, ``"multilevel"``; ``"auto"``
@@ -38,11 +38,11 @@ from jax.core import Tracer
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from .loads import Dirichlet
-from .mechanics.potential import Potential
-from .mesh import Mesh
-from .mesh.halo import Halo, build_halo, node_slots
-from .mesh.partition import METHODS, Partition, partition_mesh
+from ..loads import Dirichlet
+from ..mechanics.potential import Potential
+from ..mesh import Mesh
+from .halo import Halo, build_halo, node_slots
+from .partition import METHODS, Partition, partition_mesh
 
 __all__ = [
     "shard",
@@ -160,12 +160,12 @@ def shard(
             devices, or a one-axis :class:`jax.sharding.Mesh`.
         method: cell partitioning, ``"auto"`` (METIS when pymetis is installed, else a
             Morton curve), ``"metis"`` or ``"sfc"``
-            (:func:`~jaxelastic.mesh.partition.partition_cells`).
+            (:func:`~jaxelastic.parallel.partition.partition_cells`).
 
     Returns:
         ``(pot_s, bc_s, partition)``: the sharded potential and Dirichlet data in the global
         padded layout (``pot_s.mesh.halo`` set), and the
-        :class:`~jaxelastic.mesh.partition.Partition` (``to_natural``/``to_padded``,
+        :class:`~jaxelastic.parallel.partition.Partition` (``to_natural``/``to_padded``,
         ``stats()``).
 
     Raises:

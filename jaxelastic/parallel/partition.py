@@ -15,7 +15,7 @@ space-filling curve of the cell centroids cut into S equal pieces. A node is own
 of the parts its cells belong to (so the ghost count, Σ over nodes of ``parts − 1``, is
 the same whichever), chosen greedily to balance the owned counts.
 
-Everything here is NumPy on the host; :mod:`jaxelastic.mesh.halo` builds the device
+Everything here is NumPy on the host; :mod:`jaxelastic.parallel.halo` builds the device
 tables from a :class:`Partition`.
 """
 
