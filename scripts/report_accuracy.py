@@ -305,14 +305,14 @@ def build_uniaxial(k, element):
     from the reaction on x = 1."""
     import jax.numpy as jnp
 
-    from jaxelastic import loads
+    from jaxelastic import postprocess
 
     b = bm.uniaxial_tension(k, **rc.element_kw(element))
     m, ref = b.mesh, b.reference
     pull, corner = bm.pull_bc(m), int(b.probes["corner"][0])
 
     def evaluate(x):
-        R = loads.reaction_force(b.psi, jnp.asarray(x), m, b.params, pull)
+        R = postprocess.reaction_force(b.psi, jnp.asarray(x), m, b.params, pull)
         P_num, b_num = float(R[0]), float(x[corner, 1])
         err = max(abs(b_num - ref["b"]) / ref["b"], abs(P_num - ref["P11"]) / ref["P11"])
         return dict(value=P_num, reference=ref["P11"], lateral_stretch=b_num, error=err)

@@ -21,9 +21,10 @@ import pytest
 
 import jaxelastic as je
 from jaxelastic import io as jio
-from jaxelastic import loads
+from jaxelastic import loads, postprocess
 from jaxelastic import materials as M
-from jaxelastic.io import MeshIOError, TimeSeriesWriter, cell_fields, read_mesh, write_vtu
+from jaxelastic.io import MeshIOError, TimeSeriesWriter, read_mesh, write_vtu
+from jaxelastic.postprocess import cell_fields
 
 
 @pytest.fixture(scope="module")
@@ -153,7 +154,7 @@ def test_load_builders_name_the_argument(square):
         loads.lumped_mass(square, np.ones(5))
     bc = loads.fix(square, [0])
     with pytest.raises(ValueError, match=re.escape("reaction_force: f_ext must have shape")):
-        loads.reaction_force(M.linear, square.points, square, P2, bc, f_ext=np.zeros((9, 3)))
+        postprocess.reaction_force(M.linear, square.points, square, P2, bc, f_ext=np.zeros((9, 3)))
 
 
 # ---------------------------------------------------------------------------- ψ
@@ -358,7 +359,7 @@ def test_interrupt_while_creating_the_temp_file_leaves_nothing(tmp_path, monkeyp
             raise KeyboardInterrupt
         return fd
 
-    monkeypatch.setattr(jio.os, "open", interrupted)
+    monkeypatch.setattr(jio.files.os, "open", interrupted)
     with pytest.raises(KeyboardInterrupt):
         jio.write_json(tmp_path / "summary.json", {"a": 1})
     monkeypatch.undo()

@@ -15,10 +15,10 @@ import jaxelastic as je
 from jaxelastic import benchmarks as bm
 from jaxelastic import loads as L
 from jaxelastic import materials, scene
-from jaxelastic.io import cell_fields
 from jaxelastic.mechanics.kinematics import b_bar, det, f_bar
 from jaxelastic.mechanics.potential import Potential
 from jaxelastic.mesh import boundary_nodes
+from jaxelastic.postprocess import cell_fields
 
 # ------------------------------------------------------------------------- the F̄ maps
 

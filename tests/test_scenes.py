@@ -663,11 +663,11 @@ def test_nice_125_and_the_factor_in_the_title():
 def test_static_outputs_evaluate_the_stresses_once(tmp_path, monkeypatch):
     """The VTU file and the picture of a static run share one stress evaluation, and the
     picture is coloured by the nodal von Mises stress the VTU holds."""
-    import jaxelastic.io as jio
+    import jaxelastic.io.vtk as jvtk
     import jaxelastic.scene.outputs as jout
 
     calls, seen = [], {}
-    orig_fields = jio.stress_fields
+    orig_fields = jvtk.stress_fields
 
     def counting(*args, **kwargs):
         calls.append(1)
@@ -679,7 +679,7 @@ def test_static_outputs_evaluate_the_stresses_once(tmp_path, monkeypatch):
         seen["values"] = kwargs.get("values")
         return orig_figure(*args, **kwargs)
 
-    monkeypatch.setattr(jio, "stress_fields", counting)
+    monkeypatch.setattr(jvtk, "stress_fields", counting)
     monkeypatch.setattr(jout, "stress_fields", counting)
     monkeypatch.setattr(jout._plot, "final_shape_figure", figure)
     out = tmp_path / "out"

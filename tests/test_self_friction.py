@@ -251,7 +251,7 @@ def _press_and_shear(dim, mu, press=0.03, shear=0.02, gap=0.01, steps=4):
     top_mask = np.zeros_like(X, bool)
     top_mask[top] = True
     bc_top = je.Dirichlet(mask=jnp.asarray(top_mask), values=jnp.asarray(x))
-    R = np.asarray(je.loads.reaction_force(pot.psi, res.x, mesh, pot.params, bc_top))
+    R = np.asarray(je.postprocess.reaction_force(pot.psi, res.x, mesh, pot.params, bc_top))
     increments = [r["s"] for r in res.stats["increments"] if r["accepted"]]
     return dict(Ft=abs(R[0]), Fn=abs(R[-1]), slip=slip, contact=pot.contact, res=res,
                 increments=increments, x=x)  # fmt: skip
