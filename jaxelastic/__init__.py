@@ -10,15 +10,19 @@ The library never changes JAX's global configuration: enable float64 yourself wi
 ``jax.config.update("jax_enable_x64", True)`` (tests, scripts and the CLI do).
 """
 
-from . import benchmarks as benchmarks
 from . import contact as contact
 from . import dynamics as dynamics
 from . import fitting as fitting
 from . import io as io
 from . import loads as loads
 from . import materials as materials
+from . import mechanics as mechanics
 from . import mesh as mesh
+from . import parallel as parallel
+from . import postprocess as postprocess
 from . import solvers as solvers
+from . import verification as benchmarks
+from . import verification as verification
 from .dynamics import Integrator as Integrator
 from .io import read_mesh as read_mesh
 from .io import write_vtu as write_vtu
@@ -64,5 +68,73 @@ from .solvers import SolveError as SolveError
 from .solvers import Status as Status
 from .solvers import solve as solve
 from .solvers import solve_incremental as solve_incremental
+from .verification import derivative_check as crosscheck
+
+__all__ = [
+    "contact",
+    "dynamics",
+    "fitting",
+    "io",
+    "loads",
+    "materials",
+    "mechanics",
+    "mesh",
+    "parallel",
+    "postprocess",
+    "solvers",
+    "verification",
+    "benchmarks",
+    "crosscheck",
+    "distributed",
+    "kinematics",
+    "potential",
+    "reference",
+    "sharding",
+    "Integrator",
+    "read_mesh",
+    "write_vtu",
+    "Dirichlet",
+    "Lame",
+    "lame",
+    "reference",
+    "kinematics",
+    "potential",
+    "element_hessians",
+    "assemble",
+    "element_forces",
+    "energy",
+    "energy_densities",
+    "first_piola",
+    "forces",
+    "hvp",
+    "deformation_gradients",
+    "polar",
+    "svd_rv",
+    "Potential",
+    "project_psd",
+    "Mesh",
+    "MeshError",
+    "box",
+    "cook_membrane",
+    "from_arrays",
+    "rectangle",
+    "to_quadratic",
+    "with_formulation",
+    "distributed",
+    "sharding",
+    "Partition",
+    "shard",
+    "AMG",
+    "CG",
+    "Direct",
+    "ImplicitAdjoint",
+    "Multilevel",
+    "Newton",
+    "Solution",
+    "SolveError",
+    "Status",
+    "solve",
+    "solve_incremental",
+]
 
 __version__ = "0.1.0"

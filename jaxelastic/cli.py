@@ -177,7 +177,7 @@ def _enable_jax(cache: bool) -> None:
 
 def _crosscheck(argv) -> int:
     try:
-        from . import crosscheck
+        from .verification import derivative_check as crosscheck
     except ImportError as e:
         print(f"jaxelastic: error: the crosscheck module is not available ({e})", file=sys.stderr)
         return 2

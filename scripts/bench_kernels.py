@@ -374,7 +374,7 @@ RATIOS = (  # (printed label, numerator kernel, denominator kernel); "-" = assem
 
 
 def ratios(rows) -> list[dict]:
-    """The issue's ratios per (model, dim, size), from median and from min times.
+    """The target ratios per (model, dim, size), from median and from min times.
 
     ``f/handP = forces / forces_handP`` (target ≤ 1.1), ``f/elem = forces / elem_forces``
     (target ≤ 1.25); ``asm/scat`` etc. compare the assembly alone (< 1: ``assemble`` faster).

@@ -1,7 +1,7 @@
 """Solver benchmark: the JAX-FEM "twist" hyperelasticity problem, a backward-Euler step,
 and the cost of each optional part of a scene.
 
-Twist (:func:`jaxelastic.benchmarks.twist`): unit cube ``box(n, n, n)`` (6n³ tets), face
+Twist (:func:`jaxelastic.verification.twist`): unit cube ``box(n, n, n)`` (6n³ tets), face
 x = 1 clamped, face x = 0 given u_x = 0 and half of a 60° rotation about the x axis through
 (y, z) = (0.5, 0.5); user ψ isochoric neo-Hookean ``μ/2 (J^(−2/3) I_C − 3) + κ/2 (J − 1)²``
 with E = 10, ν = 0.3, κ = E/(3(1 − 2ν)); converged to a relative residual of 1e-8. Each
@@ -54,8 +54,8 @@ ELEMENTS = {
 
 
 def _twist_problem(n: int, element: str = "p1"):
-    """(mesh, pot, bc) of :func:`jaxelastic.benchmarks.twist` for an element variant."""
-    from jaxelastic import benchmarks
+    """(mesh, pot, bc) of :func:`jaxelastic.verification.twist` for an element variant."""
+    from jaxelastic import verification as benchmarks
 
     b = benchmarks.twist(n, **ELEMENTS[element])
     return b.mesh, b.pot, b.bc

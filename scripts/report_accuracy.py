@@ -4,7 +4,7 @@ For every case: a refinement sequence × element variant (P1, P2, F-bar; see
 ``_report_common.ELEMENT_KW``) × solver setting (linear solver, preconditioner, Newton
 tolerance), with the error, mesh size h, dofs, wall time split into compilation (cold call
 minus warm call) and run (the warm second call, same compiled code), Newton and linear
-iterations. The problems are those of :mod:`jaxelastic.benchmarks` (their docstrings cite
+iterations. The problems are those of :mod:`jaxelastic.verification` (their docstrings cite
 the references; README section "Accuracy, error against run time, stability"):
 
 * ``cook``: Cook's membrane, linear, plane stress (E = 1, ν = 1/3, total shear 1 on x = 48),
@@ -53,7 +53,7 @@ from typing import NamedTuple
 import _report_common as rc
 import numpy as np
 
-from jaxelastic import benchmarks as bm
+from jaxelastic import verification as bm
 
 # --------------------------------------------------------------------------------------
 # solver settings and the generic row runner
@@ -239,7 +239,7 @@ def _p1_only(element: str, what: str) -> None:
 
 
 # --------------------------------------------------------------------------------------
-# cases: a benchmark of jaxelastic.benchmarks and how to score it
+# cases: a benchmark of jaxelastic.verification and how to score it
 # --------------------------------------------------------------------------------------
 
 

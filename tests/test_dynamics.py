@@ -110,6 +110,7 @@ def test_energy_nonincreasing_backward_euler(mesh, base, clamp):
     np.testing.assert_allclose(float(final.t), 40 * H0, rtol=1e-12)
 
 
+@pytest.mark.extended
 def test_energy_bdf2_nearly_conserved(mesh, base, clamp):
     st0 = D.init_state(_prestretched(mesh))
     states = _run(base, st0, clamp, H0, 40, "bdf2")

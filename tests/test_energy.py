@@ -2,8 +2,9 @@
 inversion, composition with jit/vmap/grad, and a user-defined material end to end.
 
 Forces vs finite differences of the energy and HVP vs finite differences of the forces are
-checked for every built-in model by ``jaxelastic.crosscheck`` (``tests/test_crosscheck.py``
-asserts that every row passes); here the same FD checks run on two user-written models.
+checked for every built-in model by ``jaxelastic.verification.derivative_check``
+(``tests/test_crosscheck.py`` asserts that every row passes); here the same FD checks run on
+two user-written models.
 """
 
 import functools

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import jaxelastic as je
-from jaxelastic import benchmarks
 from jaxelastic import loads as L
 from jaxelastic import materials as M
+from jaxelastic import verification as benchmarks
 from jaxelastic.mechanics import potential as P
 from jaxelastic.solvers import cg
 from jaxelastic.solvers.multilevel import build_hierarchy, preconditioner
@@ -48,6 +48,7 @@ def test_hierarchy_has_levels_and_binds_once(beam):
         je.Multilevel(coarse_scale=2.5)
 
 
+@pytest.mark.extended
 def test_matches_direct_2d(beam):
     mesh, bc, f = beam
     pot = _pot(mesh, f, 1e3)
@@ -187,6 +188,7 @@ def test_iterations_grow_slowly_with_size():
     assert its[2] <= its[0] + 8 and its[2] <= 1.6 * its[0], its
 
 
+@pytest.mark.extended
 def test_projected_upper_by_blocks(beam, monkeypatch):
     """The host Newton retry's projection (a PSD test per block of cells, then eigh of the
     failing cells only, padded; Python loops of compiled calls with tail blocks) assembles

@@ -560,6 +560,7 @@ def test_jitted_and_host_newton_drivers_take_the_same_iterates(rect):
     assert n == len(energies)
 
 
+@pytest.mark.extended
 def test_first_line_search_trial_outside_the_loop_changes_nothing(rect, monkeypatch):
     """Large meshes (``STRAIGHT_TRIAL_MIN_CELLS``) try α = 1 before the line search's
     while loop, small ones inside it: the same iterates, cutbacks and answer either way

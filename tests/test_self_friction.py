@@ -287,6 +287,7 @@ def test_blocks_stick_or_slide(dim, rel):
     assert out[1.0] > 2 * out[0.1]
 
 
+@pytest.mark.extended
 def test_contact_hook_and_refresh():
     """``Contact`` carries the pair friction: energy, gradient, forces and the Hessian
     split (node blocks in Ke + coupling) include it; a broad phase re-run keeps the lagged

@@ -747,7 +747,7 @@ import json, resource, sys
 import jax
 jax.config.update("jax_enable_x64", True)
 import jaxelastic as je
-from jaxelastic import benchmarks
+from jaxelastic import verification as benchmarks
 b = benchmarks.twist(int(sys.argv[1]))
 newton = je.Newton(rtol=1e-8, linear=je.solvers.bind_linear("direct", b.mesh, b.bc))
 for _ in range(2):  # cold and warm, as a scene's static solve then a time step

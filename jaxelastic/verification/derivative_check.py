@@ -49,12 +49,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import materials
-from .io import write_json
-from .materials import Lame, reference
-from .mechanics.kernels import energy, first_piola, forces, hvp
-from .mechanics.kinematics import deformation_gradients
-from .mesh import box, rectangle
+from .. import materials
+from ..io import write_json
+from ..materials import Lame, reference
+from ..mechanics.kernels import energy, first_piola, forces, hvp
+from ..mechanics.kinematics import deformation_gradients
+from ..mesh import box, rectangle
 
 __all__ = [
     "P_TOL",

@@ -15,7 +15,7 @@ on the edge x = 48 (length 16). Three published variants:
 
 Every builder takes the mesh keywords of :func:`~jaxelastic.mesh.cook_membrane`
 (``order=2``, ``formulation="fbar"``/``"bbar"``) and returns a
-:class:`~jaxelastic.benchmarks.Benchmark` whose probe ``"point"`` is the scored node.
+:class:`~jaxelastic.verification.Benchmark` whose probe ``"point"`` is the scored node.
 """
 
 from __future__ import annotations
