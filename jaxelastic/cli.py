@@ -358,7 +358,7 @@ def main(argv=None) -> int:
         return _list_scenes()
     if args.command == "schema":
         return _print_schema()
-    from .solvers.heap import map_large_blocks
+    from .solvers.host import map_large_blocks
 
     map_large_blocks()  # freed large blocks back to the OS at once (process-wide)
     return _run_interruptible(args)

@@ -58,8 +58,7 @@ import psutil  # noqa: E402
 import jaxelastic  # noqa: E402
 from jaxelastic.io import write_json  # noqa: E402
 from jaxelastic.materials import Lame, isochoric_neo_hookean  # noqa: E402
-from jaxelastic.solvers.backends import available_direct_backends  # noqa: E402
-from jaxelastic.solvers.host import HostLinearSolver  # noqa: E402
+from jaxelastic.solvers.host import HostLinearSolver, available_direct_backends  # noqa: E402
 
 E_YOUNG, NU = 10.0, 0.3
 MU = E_YOUNG / (2.0 * (1.0 + NU))

@@ -123,7 +123,7 @@ def worker(n: int, solver: str, element: str = "p1") -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import jaxelastic as je
-    from jaxelastic.solvers.heap import map_large_blocks
+    from jaxelastic.solvers.host import map_large_blocks
 
     map_large_blocks()  # as the jaxelastic command does (docs/guide/linear-solvers.md)
 

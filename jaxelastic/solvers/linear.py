@@ -41,9 +41,14 @@ from ..mechanics.potential import (
 )
 from ..parallel.distributed import host_array
 from ..parallel.sharding import is_sharded
-from .backends import available_direct_backends
 from .blocks import block_inverse_or_diagonal
-from .host import ContentCache, HostLinearSolver, content_key
+from .host import (
+    ContentCache,
+    HostLinearSolver,
+    available_direct_backends,
+    content_key,
+    local_upper,
+)
 from .multilevel import (
     Hierarchy,
     ShardedHierarchy,
@@ -52,7 +57,6 @@ from .multilevel import (
     preconditioner,
     sharded_preconditioner,
 )
-from .pattern import local_upper
 from .results import Solution, Status
 
 __all__ = [

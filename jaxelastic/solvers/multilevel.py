@@ -5,7 +5,7 @@ Two halves:
 * **Setup on the host, once per (mesh, Dirichlet mask)** (:func:`build_hierarchy`, NumPy):
   greedy aggregation of the node graph (Vaněk, Mandel & Brezina 1996, "Algebraic multigrid
   by smoothed aggregation", Computing 56:179), the rigid-body modes
-  (:func:`~jaxelastic.solvers.pattern.rigid_body_modes`) as near-null space, orthonormalised
+  (:func:`~jaxelastic.solvers.host.pattern.rigid_body_modes`) as near-null space, orthonormalised
   per aggregate into a tentative prolongator ``T`` with one ``(b, m)`` block per fine node
   (``b`` = dofs per node on that level, ``m`` = 3 in 2D, 6 in 3D), and integer index maps:
   the padded row layout (ELL) of every level's block matrix, the element-block → level-0
@@ -58,7 +58,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .blocks import block_inverse_or_diagonal
-from .pattern import rigid_body_modes
+from .host import rigid_body_modes
 
 __all__ = [
     "Hierarchy",

@@ -55,7 +55,7 @@ from ..mechanics.kernels import hvp
 from ..mechanics.kinematics import deformation_gradients, det
 from ..mechanics.potential import Potential
 from ..mechanics.psd import project_element_psd, project_psd
-from .heap import release_free_memory
+from .host import release_free_memory
 from .linear import NewtonSystem, assemble_upper
 from .results import RUNNING, Solution, Status
 

@@ -24,9 +24,9 @@ from ..mechanics.potential import Potential, is_array
 from ..mesh import Mesh
 from ..parallel.distributed import host_array
 from .adjoint import ImplicitAdjoint, differentiable_minimize
+from .host import rigid_body_modes
 from .linear import AMG, Direct, bind_linear
 from .newton import Newton, host_minimize, is_quadratic
-from .pattern import rigid_body_modes
 from .results import Solution, SolveError, Status
 
 __all__ = ["solve", "bind_solver", "is_traced"]

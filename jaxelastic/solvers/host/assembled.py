@@ -1,7 +1,7 @@
 """Host factorise / apply services behind the device conjugate-gradient loop.
 
 :class:`HostLinearSolver` is built once per (mesh, Dirichlet mask): it analyses the
-sparsity pattern and keeps a :mod:`~jaxelastic.solvers.backends` back end. The device CG
+sparsity pattern and keeps a :mod:`~jaxelastic.solvers.host` back end. The device CG
 (:func:`jaxelastic.solvers.linear.cg`) runs every Krylov iteration and reaches the host
 through :func:`jax.pure_callback` only to
 
@@ -9,7 +9,7 @@ through :func:`jax.pure_callback` only to
   matrix, which JAX assembled on the device from the element Hessians (a segment sum over
   the int32 :attr:`HostLinearSolver.element_map`, symmetrisation folded in: only the
   ``(nnz_upper,)`` vector crosses to the host), eliminate the Dirichlet dofs, and factorise
-  (``"direct"``: sparse Cholesky, see :class:`~jaxelastic.solvers.backends.DirectSolver`)
+  (``"direct"``: sparse Cholesky, see :class:`~jaxelastic.solvers.host.DirectSolver`)
   or build / refresh an AMG hierarchy (``"amg"``), returning a status code
   (:meth:`HostLinearSolver.factor` does the same from element Hessians on the host); and
 * :meth:`HostLinearSolver.apply`: ``K⁻¹r`` (direct, exact) or one V-cycle ``M⁻¹r`` (AMG).
@@ -38,9 +38,10 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from .backends import AMGSolver, DirectSolver, make_backend
+from ..results import Status
+from .amg import AMGSolver
+from .direct import DirectSolver
 from .pattern import SparsityPattern
-from .results import Status
 
 __all__ = [
     "HostLinearSolver",
@@ -49,12 +50,38 @@ __all__ = [
     "SUCCESS",
     "NONFINITE",
     "NOT_POSITIVE_DEFINITE",
+    "make_backend",
+    "BACKEND_KINDS",
 ]
 
 # the statuses :meth:`HostLinearSolver.factor` returns (members of je.Status)
 SUCCESS = Status.SUCCESS  # factorised (positive definite) / AMG hierarchy built
 NONFINITE = Status.NONFINITE  # non-finite Hessian or mass entries: nothing factorised
 NOT_POSITIVE_DEFINITE = Status.NOT_POSITIVE_DEFINITE  # the assembled matrix is not SPD
+
+BACKEND_KINDS = ("direct", "amg")
+
+
+def make_backend(kind: str, points=None, fixed=None, pattern=None, **opts):
+    """Build a host factorisation back end by name.
+
+    Args:
+        kind: ``"direct"`` (:class:`DirectSolver`) or ``"amg"`` (:class:`AMGSolver`).
+        points: ``(n_nodes, dim)`` node positions (needed by ``"amg"``).
+        fixed: ``(n_nodes*dim,)`` bool Dirichlet mask (used by ``"amg"``).
+        pattern: optional :class:`~jaxelastic.solvers.host.pattern.SparsityPattern` (``"amg"``).
+        **opts: keyword options of the chosen class.
+
+    Raises:
+        ValueError: unknown ``kind`` (the message lists the valid ones).
+    """
+    if kind == "direct":
+        return DirectSolver(**opts)
+    if kind == "amg":
+        if points is None:
+            raise ValueError("make_backend('amg', ...) needs the node positions `points`")
+        return AMGSolver(points, fixed, pattern=pattern, **opts)
+    raise ValueError(f"unknown solver kind {kind!r}; valid kinds: {', '.join(BACKEND_KINDS)}")
 
 
 def content_key(cells, points, fixed, kind: str, opts: dict) -> tuple:
@@ -117,11 +144,11 @@ class HostLinearSolver:
         cells: ``(n_cells, k)`` connectivity; points: ``(n_nodes, dim)`` rest positions.
         fixed: ``(n_nodes, dim)`` bool Dirichlet mask.
         kind: ``"direct"`` (sparse Cholesky: MKL PARDISO, CHOLMOD, cholespy or SuperLU,
-            see :class:`~jaxelastic.solvers.backends.DirectSolver`; :meth:`apply` is an
+            see :class:`~jaxelastic.solvers.host.DirectSolver`; :meth:`apply` is an
             exact solve) or ``"amg"`` (PyAMG smoothed aggregation with rigid-body
             modes; :meth:`apply` is one V-cycle, a preconditioner).
-        **opts: options of the back end (:class:`~jaxelastic.solvers.backends.DirectSolver`
-            or :class:`~jaxelastic.solvers.backends.AMGSolver`).
+        **opts: options of the back end (:class:`~jaxelastic.solvers.host.DirectSolver`
+            or :class:`~jaxelastic.solvers.host.AMGSolver`).
 
     Instances compare equal (and hash alike) when built for the same connectivity, rest
     positions, mask, kind and options, so jitted solvers taking one as a static argument
@@ -197,8 +224,9 @@ class HostLinearSolver:
     @property
     def element_map(self) -> np.ndarray:
         """``(n_cells * m(m+1)/2,)`` int32 upper-triangle slot of every local upper entry of
-        every element Hessian (:attr:`~jaxelastic.solvers.pattern.SparsityPattern.element_map`),
-        for assembling the upper data on the device."""
+        every element Hessian
+        (:attr:`~jaxelastic.solvers.host.pattern.SparsityPattern.element_map`), for assembling
+        the upper data on the device."""
         return self.pattern.element_map
 
     @property
@@ -342,7 +370,7 @@ class HostLinearSolver:
         self, data, mass_diag, r, tol, max_iter, token=None, threads: bool = False
     ) -> tuple[np.ndarray, np.int32, np.int32]:
         """AMG only: :meth:`factor_upper`, then the whole preconditioned CG on the host
-        (:meth:`~jaxelastic.solvers.backends.AMGSolver.solve`: the assembled matrix and one
+        (:meth:`~jaxelastic.solvers.host.AMGSolver.solve`: the assembled matrix and one
         V-cycle per iteration), under one lock: ``(x, iterations, status)``.
 
         For a Newton operator that *is* the assembled matrix (no self-contact coupling,
@@ -356,7 +384,7 @@ class HostLinearSolver:
             token: ignored; a data dependency that orders the callbacks.
             threads: the hierarchy's Galerkin products and the CG's large matrix products
                 split over the cores (for calls from Python only, see
-                :meth:`~jaxelastic.solvers.backends.AMGSolver.solve`).
+                :meth:`~jaxelastic.solvers.host.AMGSolver.solve`).
 
         Returns:
             ``x`` shaped and typed like ``r`` (zero on fixed dofs), the iteration count

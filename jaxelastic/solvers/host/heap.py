@@ -20,6 +20,8 @@ import ctypes
 import ctypes.util
 import functools
 
+__all__ = ["release_free_memory", "map_large_blocks"]
+
 
 @functools.cache
 def _libc(name: str, argtypes: tuple, restype):
