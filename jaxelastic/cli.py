@@ -177,7 +177,7 @@ def _enable_jax(cache: bool) -> None:
 
 def _crosscheck(argv) -> int:
     try:
-        from . import crosscheck
+        from .verification import derivative_check as crosscheck
     except ImportError as e:
         print(f"jaxelastic: error: the crosscheck module is not available ({e})", file=sys.stderr)
         return 2
@@ -358,7 +358,7 @@ def main(argv=None) -> int:
         return _list_scenes()
     if args.command == "schema":
         return _print_schema()
-    from .solvers.heap import map_large_blocks
+    from .solvers.host import map_large_blocks
 
     map_large_blocks()  # freed large blocks back to the OS at once (process-wide)
     return _run_interruptible(args)

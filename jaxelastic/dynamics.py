@@ -52,10 +52,10 @@ import jax
 import jax.numpy as jnp
 from jax.core import Tracer
 
-from .energy import energy
 from .loads import Dirichlet
-from .potential import Potential
-from .potential import value as potential_value
+from .mechanics.kernels import energy
+from .mechanics.potential import Potential
+from .mechanics.potential import value as potential_value
 from .solvers import (
     X_STAR,
     ImplicitAdjoint,

@@ -1,4 +1,4 @@
-"""Boundary conditions and loads: Dirichlet data, tractions, point loads, gravity, reactions.
+"""Boundary conditions and loads: Dirichlet data, tractions, point loads, gravity, masses.
 
 Node sets are chosen on the host (NumPy) once per scene: by predicate on rest positions, by
 box or plane, or from a mesh file's physical groups (:mod:`jaxelastic.io`). Dead loads
@@ -14,14 +14,14 @@ for P1 and composite cells, HRZ diagonal scaling for P2 (:func:`lumped_mass`); g
 mass × g by default, or the consistent ``∫ρ g N_a dV`` (``consistent=True``).
 
 The builders return NumPy arrays in the mesh's float dtype (so a float32 mesh gets float32
-loads and masses, which :class:`~jaxelastic.potential.Potential` requires) and refuse
-arguments of the wrong shape with a message naming the argument, the expected and the
-given shape.
+loads and masses, which :class:`~jaxelastic.mechanics.potential.Potential` requires) and
+refuse arguments of the wrong shape with a message naming the argument, the expected and the
+given shape. Reactions and facet tractions of a solved state are in
+:mod:`jaxelastic.postprocess`.
 """
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -30,8 +30,6 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .energy import check_positions, check_psi, first_piola, forces
-from .kinematics import deformation_gradients
 from .mesh import Mesh, boundary_facets
 from .mesh.elements import Element, facet_rule
 
@@ -50,8 +48,6 @@ __all__ = [
     "point_load",
     "gravity_load",
     "lumped_mass",
-    "reaction_force",
-    "facet_tractions",
 ]
 
 
@@ -388,57 +384,3 @@ def gravity_load(mesh: Mesh, density, g, *, consistent: bool = False) -> np.ndar
     return _mesh_dtype(
         mesh, _scatter(mesh, np.asarray(mesh.cells), rho[:, None] * n1)[:, None] * gv
     )
-
-
-def reaction_force(
-    psi, x, mesh: Mesh, params, dirichlet: Dirichlet, f_ext=None, inertia=None
-) -> jax.Array:
-    """Total force ``(dim,)`` that the supports exert on the body at the prescribed dofs.
-
-    At equilibrium the internal forces balance loads and reactions; the reaction on each
-    prescribed dof is ``∂Π/∂x`` there (elastic gradient minus external load). Summed over
-    the set, it balances the applied loads: ``reaction + Σ f_ext = 0`` in statics.
-    """
-    for name, a in (("f_ext", f_ext), ("inertia", inertia), ("dirichlet.mask", dirichlet.mask)):
-        if a is not None:
-            check_positions(a, mesh, name=name, where="reaction_force")
-    r = -forces(psi, x, mesh, params)
-    if f_ext is not None:
-        r = r - f_ext
-    if inertia is not None:
-        r = r + inertia
-    return jnp.sum(jnp.where(dirichlet.mask, r, 0.0), axis=0)
-
-
-def facet_tractions(psi, x, mesh: Mesh, params, facets) -> np.ndarray:
-    """Nominal traction ``τ = P·N`` ``(m, dim)`` on boundary facets (force / reference area).
-
-    P is the weighted average over the quadrature points of the cell that owns each facet
-    (the one value for P1; of P(F̄) under F-bar), N is the outward rest normal.
-    """
-    check_positions(x, mesh, where="facet_tractions")
-    check_psi(psi, mesh.dim, mesh.points.dtype, params, mesh.n_cells, where="facet_tractions")
-    facets = np.asarray(facets, dtype=np.int64)
-    el = mesh.element_type
-    d = mesh.dim
-    cells = np.asarray(mesh.cells)
-    local = np.asarray(el.facet_nodes)
-    all_f = np.sort(cells[:, local[:, :d]].reshape(-1, d), axis=1)
-    owner = {tuple(k): i // local.shape[0] for i, k in enumerate(all_f)}
-    try:
-        cidx = np.array([owner[tuple(k)] for k in np.sort(facets[:, :d], axis=1)])
-    except KeyError as e:
-        raise ValueError(f"facet {e.args[0]} is not a facet of any cell") from None
-    _, _, N = facet_integrals(mesh.points, facets, el)
-    return np.asarray(_tractions(psi, x, mesh, params, jnp.asarray(cidx), jnp.asarray(N)))
-
-
-@functools.partial(jax.jit, static_argnums=0)
-def _tractions(psi, x, mesh, params, cidx, N):
-    F = deformation_gradients(x, mesh)[cidx]  # (m, q, d, d)
-    w = mesh.weights[cidx]  # (m, q)
-    ax = jax.tree_util.tree_map(lambda leaf: None if jnp.ndim(leaf) == 0 else 0, params)
-    p = jax.tree_util.tree_map(lambda leaf: leaf if jnp.ndim(leaf) == 0 else leaf[cidx], params)
-    Pq = jax.vmap(jax.vmap(first_piola(psi), in_axes=(0, None)), in_axes=(0, ax))(F, p)
-    P = jnp.einsum("mq,mqij->mij", w, Pq) / jnp.sum(w, axis=1)[:, None, None]
-    return jnp.einsum("mij,mj->mi", P, N.astype(P.dtype))

@@ -495,7 +495,7 @@ def final_shape_figure(
         mesh: the rest mesh; configurations: label → ``(n_nodes, dim)`` positions.
         title: the title (the view and the magnification are appended).
         values: ``(n_nodes,)`` nodal values for the colours (e.g. the von Mises stress
-            :func:`jaxelastic.io.nodal_stress` recovers), or None for |u| [m].
+            :func:`jaxelastic.postprocess.nodal_stress` recovers), or None for |u| [m].
         values_label: the colour bar's label (default ``"|u| [m]"`` without ``values``).
         scale: ``"auto"`` or a displacement factor ≥ 1 (1: true scale).
     """

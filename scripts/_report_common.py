@@ -2,7 +2,7 @@
 
 Atomic output files (on :func:`jaxelastic.io.write_atomic`), the machine description
 stamped on every plot, Pareto fronts, rates, and the element variants (P1, P2, F-bar) as
-mesh-generator keywords. The problems themselves are in :mod:`jaxelastic.benchmarks`.
+mesh-generator keywords. The problems themselves are in :mod:`jaxelastic.verification`.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Self-contact broad phase cost (issue 14): the host spatial hash at ~5k-80k triangles.
+"""Self-contact broad phase cost: the host spatial hash at ~5k-80k triangles.
 
 A triangulated sheet folded into two parallel layers 0.01 (relative) apart, so many
 pairs are in reach; radius = d̂ + 2·margin with d̂ = 1e-3 × diagonal and margin = min(10 d̂, ¼ mean

@@ -1,11 +1,11 @@
-"""Cost of contact per Newton iteration vs the elastic element Hessians (issue 14).
+"""Cost of contact per Newton iteration vs the elastic element Hessians.
 
 The ``drop`` scene's body (a 0.2 m stable neo-Hookean cube, lagged friction μ = 0.5 on the
 ground, d̂ = 1e-3 m) on a finer mesh (``6n³`` tets; n = 20: 48k), placed so that its base
 sits inside the barrier's reach (every base node active). Timed, each jitted, min of 3:
 
 * ``elastic Ke``: the element Hessians Newton builds every iteration (exact, by
-  contraction: :func:`jaxelastic.energy.element_hessians`) — the reference;
+  contraction: :func:`jaxelastic.mechanics.hessians.element_hessians`) — the reference;
 * ``barrier``: what contact adds per Newton iteration: Π_c and ∂Π_c/∂x (one line-search
   trial), the per-node Hessian blocks folded into Ke
   (:meth:`~jaxelastic.contact.Contact.add_hessian_blocks`) and the CCD step bound;
@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 
 import jaxelastic as je  # noqa: E402
 from jaxelastic import contact as jc  # noqa: E402
-from jaxelastic.energy import element_hessians  # noqa: E402
+from jaxelastic.mechanics import element_hessians  # noqa: E402
 
 DHAT = 1e-3
 

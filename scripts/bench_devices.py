@@ -1,6 +1,6 @@
 """Device benchmark: the neo-Hookean twist at growing size on whatever devices JAX sees.
 
-The JAX-FEM twist (:func:`jaxelastic.benchmarks.twist`: unit cube ``box(n, n, n)``,
+The JAX-FEM twist (:func:`jaxelastic.verification.twist`: unit cube ``box(n, n, n)``,
 6n³ P1 tets, 3(n+1)³ dofs, face x = 1 clamped, face x = 0 turned by 30°, isochoric
 neo-Hookean) solved by Newton with the device linear solver (``--linear``: the device
 multigrid ``multilevel`` when the library has it, else ``cg``), in float32 and float64
@@ -64,7 +64,7 @@ def child(n: int, precision: str, linear: str, repeat: int, rtol: float) -> dict
     import jax.numpy as jnp
 
     import jaxelastic as je
-    from jaxelastic import benchmarks
+    from jaxelastic import verification as benchmarks
 
     dtype = jnp.float32 if precision == "float32" else jnp.float64
     if linear == "auto-device":

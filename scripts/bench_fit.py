@@ -124,8 +124,8 @@ def bench_solver(kind: str, mesh, bc, f_bend, x_obs, repeats: int) -> dict:
     import jax.numpy as jnp
 
     import jaxelastic as je
-    from jaxelastic import potential as P
     from jaxelastic.materials import Lame, lame
+    from jaxelastic.mechanics import potential as P
     from jaxelastic.solvers.linear import block_jacobi, cg
 
     solver = je.solvers.prepare_solver(je.Newton(rtol=1e-10, linear=kind), mesh, bc)

@@ -3,7 +3,7 @@
 Measures, for each material model, dimension (``rectangle`` triangles / ``box`` tets) and
 mesh size (about 10k, 100k and 1M elements), in float64 on the default JAX device:
 
-* ``energy``            total energy (``jaxelastic.energy``);
+* ``energy``            total energy (``jaxelastic.mechanics.kernels.energy``);
 * ``forces``            autodiff forces (``jaxelastic.forces``: P = ∂ψ/∂F by autodiff,
                         element forces, ``assemble`` over the node→slot incidence table);
 * ``forces_handP``      the same machinery with P from ``reference.HAND_P[model]`` (injected
@@ -47,7 +47,7 @@ Usage::
                                     [--dims 2,3] [--elements p1,p2,p2fbar,composite]
                                     [--out DIR]
 
-Element-Hessian targets (issue 11, ``--hessian-targets``): tet4 / tet10 / tet10 F-bar at
+Element-Hessian targets (``--hessian-targets``): tet4 / tet10 / tet10 F-bar at
 about 100k cells (``--hessian-cells``), for neo-Hookean and corotated (an SVD-based model
 with custom JVPs), each row in its own subprocess so that its peak RSS is its own:
 ``contracted`` (``je.element_hessians``: Kₑ = Σ_q B_qᵀ Ĉ_q B_q), ``previous`` (the former
@@ -77,9 +77,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxelastic as je
-from jaxelastic import kinematics, materials, reference
-from jaxelastic.energy import cell_params_axes, element_gradient_kernel
+from jaxelastic import materials
 from jaxelastic.io import write_json
+from jaxelastic.materials import reference
+from jaxelastic.mechanics import cell_params_axes, element_gradient_kernel, kinematics
 
 SIZES = {"small": (10_000,), "medium": (10_000, 100_000), "all": (10_000, 100_000, 1_000_000)}
 
@@ -373,7 +374,7 @@ RATIOS = (  # (printed label, numerator kernel, denominator kernel); "-" = assem
 
 
 def ratios(rows) -> list[dict]:
-    """The issue's ratios per (model, dim, size), from median and from min times.
+    """The target ratios per (model, dim, size), from median and from min times.
 
     ``f/handP = forces / forces_handP`` (target ≤ 1.1), ``f/elem = forces / elem_forces``
     (target ≤ 1.25); ``asm/scat`` etc. compare the assembly alone (< 1: ``assemble`` faster).
@@ -474,7 +475,7 @@ HESSIAN_MODELS = ("neo_hookean", "corotated")
 def _previous_element_hessians(psi, x, mesh, params):
     """The former implementation: einsum contraction for the standard formulation, and
     ``jax.hessian`` of the element energy over the element coordinates for F-bar/B-bar."""
-    from jaxelastic.energy import element_hessians_reference
+    from jaxelastic.mechanics import element_hessians_reference
 
     if mesh.formulation != "standard":
         return element_hessians_reference(psi, x, mesh, params)

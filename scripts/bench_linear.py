@@ -1,6 +1,6 @@
 """Benchmark the host linear-algebra path: element Hessians → CSR assembly → solve.
 
-Two 3D problems linearised at rest, isochoric neo-Hookean
+Two 3D problems linearised at rest, isochoric neo-Hookean (``materials.isochoric_neo_hookean``)
 ``ψ = μ/2 (J^(-2/3) tr(FᵀF) − 3) + κ/2 (J − 1)²`` with E = 10, ν = 0.3:
 
 * ``twist``: unit cube ``box(n, n, n)``, faces x = 0 and x = 1 clamped, the x = 1 face
@@ -57,25 +57,19 @@ import psutil  # noqa: E402
 
 import jaxelastic  # noqa: E402
 from jaxelastic.io import write_json  # noqa: E402
-from jaxelastic.kinematics import det  # noqa: E402
-from jaxelastic.solvers.backends import available_direct_backends  # noqa: E402
-from jaxelastic.solvers.host import HostLinearSolver  # noqa: E402
+from jaxelastic.materials import Lame, isochoric_neo_hookean  # noqa: E402
+from jaxelastic.solvers.host import HostLinearSolver, available_direct_backends  # noqa: E402
 
 E_YOUNG, NU = 10.0, 0.3
 MU = E_YOUNG / (2.0 * (1.0 + NU))
 KAPPA = E_YOUNG / (3.0 * (1.0 - 2.0 * NU))
 
 
-def psi_isochoric_nh(F, params):
-    """Isochoric neo-Hookean ``μ/2 (J^(-2/3) tr(FᵀF) − 3) + κ/2 (J − 1)²``; params (μ, κ)."""
-    mu, kappa = params
-    J = det(F)
-    return 0.5 * mu * (J ** (-2.0 / 3.0) * jnp.sum(F * F) - 3.0) + 0.5 * kappa * (J - 1.0) ** 2
-
-
-_hessians = jax.jit(lambda x, mesh, p: jaxelastic.element_hessians(psi_isochoric_nh, x, mesh, p))
+_hessians = jax.jit(
+    lambda x, mesh, p: jaxelastic.element_hessians(isochoric_neo_hookean, x, mesh, p)
+)
 _hessians_psd = jax.jit(
-    lambda x, mesh, p: jaxelastic.element_hessians(psi_isochoric_nh, x, mesh, p, project=True)
+    lambda x, mesh, p: jaxelastic.element_hessians(isochoric_neo_hookean, x, mesh, p, project=True)
 )
 
 
@@ -273,7 +267,7 @@ def bench_case(kind, n, args):
     rec = dict(
         problem=kind, n=n, n_cells=mesh.n_cells, n_dofs=mesh.n_dofs, n_fixed=int(fixed.sum())
     )
-    params = (jnp.asarray(MU), jnp.asarray(KAPPA))
+    params = Lame(jnp.asarray(MU), jnp.asarray(KAPPA))
     x0 = mesh.points
     Ke, t, c, m = timed(lambda: _hessians(x0, mesh, params).block_until_ready())
     rec["hessians_first_call_s"] = t  # includes compilation

@@ -1,6 +1,6 @@
 """Device multigrid vs host AMG vs block-Jacobi CG on the neo-Hookean twist.
 
-Twist (:func:`jaxelastic.benchmarks.twist`): unit cube ``box(n, n, n)`` (6n³ tets, 3(n+1)³
+Twist (:func:`jaxelastic.verification.twist`): unit cube ``box(n, n, n)`` (6n³ tets, 3(n+1)³
 dofs; n = 19 ≈ 24k dofs, n = 29 ≈ 81k dofs), Newton to a relative residual of 1e-8. Each
 (n, linear solver) runs in a fresh subprocess, so its peak RSS and its compile are its own.
 
@@ -93,7 +93,7 @@ def communication(pot, bc, linear) -> dict:
     import jax.numpy as jnp
 
     import jaxelastic as je
-    from jaxelastic import potential as pm
+    from jaxelastic.mechanics import potential as pm
     from jaxelastic.solvers.multilevel import sharded_preconditioner
 
     x = pot.mesh.points
@@ -139,7 +139,7 @@ def worker(n: int, solver: str, repeat: int, devices: int = 1, save: str | None 
     import numpy as np
 
     import jaxelastic as je
-    from jaxelastic import benchmarks
+    from jaxelastic import verification as benchmarks
 
     b = benchmarks.twist(n)
     mesh, pot, bc = b.mesh, b.pot, b.bc

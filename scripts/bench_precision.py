@@ -1,6 +1,6 @@
 """float32 vs float64: kernel and Newton-solve times on the twist benchmark.
 
-For each size ``n`` of the twist (``jaxelastic.benchmarks.twist``, unit cube, 6n³ tets,
+For each size ``n`` of the twist (``jaxelastic.verification.twist``, unit cube, 6n³ tets,
 isochoric neo-Hookean, half of a 60° turn), in both precisions (float64 with x64 on;
 float32 = float32 arrays with x64 still on, as ``[solver] precision = "float32"`` does):
 
@@ -40,8 +40,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxelastic as je  # noqa: E402
-from jaxelastic.benchmarks import twist  # noqa: E402
 from jaxelastic.io import write_json  # noqa: E402
+from jaxelastic.verification import torsion as twist  # noqa: E402
 
 DTYPES = {"float64": jnp.float64, "float32": jnp.float32}
 

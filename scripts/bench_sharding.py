@@ -1,6 +1,6 @@
 """Sharding the twist over 1, 2 and 4 host devices: time, iterations, communication volume.
 
-Twist (:func:`jaxelastic.benchmarks.twist`, ``box(n, n, n)``: 6n³ tets, 3(n+1)³ dofs;
+Twist (:func:`jaxelastic.verification.twist`, ``box(n, n, n)``: 6n³ tets, 3(n+1)³ dofs;
 n = 10 / 19 / 29 ≈ 4k / 24k / 81k dofs), Newton (rtol 1e-8) with a device linear solver
 (``--linear cg``: block-Jacobi PCG, or ``multilevel``). Each (n, devices) runs in a fresh
 subprocess started with ``XLA_FLAGS=--xla_force_host_platform_device_count=D``; D = 1 is
@@ -19,7 +19,7 @@ Newton step runs (``jit(...).lower(...).compile().as_text()``: every ``all-reduc
 
 Bytes are *per device*: the sum of the buffers the device's collectives carry (for a
 ``collective-permute`` what it sends, for an ``all-reduce`` its operand). The contrast is
-the replicated layout of the issue's first attempt: one all-reduce of the whole node
+the replicated layout (cells sharded, nodes replicated): one all-reduce of the whole node
 vector ``3·n_nodes·8`` bytes per operator application. ``projection`` extrapolates the
 halo to N devices from the measured ghost counts, assuming shards of a 3D mesh whose
 interface grows like the surface of a cube of their volume (ghosts ∝ (n_nodes/N)^(2/3)).
@@ -92,7 +92,7 @@ def _communication(pot, x) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from jaxelastic import potential as P
+    from jaxelastic.mechanics import potential as P
 
     Ke = jax.jit(lambda p, y: P.elastic_element_hessians(p, y, False))(pot, x)
     kern = dict(
@@ -121,7 +121,7 @@ def worker(n: int, devices: int, linear: str, repeat: int, method: str) -> dict:
     import numpy as np
 
     import jaxelastic as je
-    from jaxelastic import benchmarks
+    from jaxelastic import verification as benchmarks
 
     b = benchmarks.twist(n)
     pot, bc, part = b.pot, b.bc, None

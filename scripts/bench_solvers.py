@@ -1,7 +1,7 @@
 """Solver benchmark: the JAX-FEM "twist" hyperelasticity problem, a backward-Euler step,
 and the cost of each optional part of a scene.
 
-Twist (:func:`jaxelastic.benchmarks.twist`): unit cube ``box(n, n, n)`` (6n³ tets), face
+Twist (:func:`jaxelastic.verification.twist`): unit cube ``box(n, n, n)`` (6n³ tets), face
 x = 1 clamped, face x = 0 given u_x = 0 and half of a 60° rotation about the x axis through
 (y, z) = (0.5, 0.5); user ψ isochoric neo-Hookean ``μ/2 (J^(−2/3) I_C − 3) + κ/2 (J − 1)²``
 with E = 10, ν = 0.3, κ = E/(3(1 − 2ν)); converged to a relative residual of 1e-8. Each
@@ -54,8 +54,8 @@ ELEMENTS = {
 
 
 def _twist_problem(n: int, element: str = "p1"):
-    """(mesh, pot, bc) of :func:`jaxelastic.benchmarks.twist` for an element variant."""
-    from jaxelastic import benchmarks
+    """(mesh, pot, bc) of :func:`jaxelastic.verification.twist` for an element variant."""
+    from jaxelastic import verification as benchmarks
 
     b = benchmarks.twist(n, **ELEMENTS[element])
     return b.mesh, b.pot, b.bc
@@ -69,8 +69,8 @@ def _phase_split(pot, x, bc, host):
     import jax
     import jax.numpy as jnp
 
-    from jaxelastic import potential as P
-    from jaxelastic.energy import assemble
+    from jaxelastic.mechanics import assemble
+    from jaxelastic.mechanics import potential as P
     from jaxelastic.solvers.linear import block_jacobi, cg
 
     vg = jax.jit(lambda pot, x: (P.value(pot, x), P.gradient(pot, x)))
@@ -123,7 +123,7 @@ def worker(n: int, solver: str, element: str = "p1") -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import jaxelastic as je
-    from jaxelastic.solvers.heap import map_large_blocks
+    from jaxelastic.solvers.host import map_large_blocks
 
     map_large_blocks()  # as the jaxelastic command does (docs/guide/linear-solvers.md)
 
@@ -297,7 +297,7 @@ def parts_worker() -> dict:
 
     import jaxelastic as je
     from jaxelastic import loads, materials
-    from jaxelastic import potential as P
+    from jaxelastic.mechanics import potential as P
 
     mesh = je.box(40, 10, 10, size=(4.0, 1.0, 1.0))
     params = je.Lame(*je.lame(1e6, 0.3))

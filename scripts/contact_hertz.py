@@ -7,7 +7,7 @@ force (×4) is compared with Hertz, ``F = (4/3) E* √R δ^{3/2}``, ``E* = E/(1 
 (REFERENCES "Contact"; a rigid frictionless sphere on a linear-elastic half-space,
 δ ≪ R, contact radius ``a = √(Rδ)`` ≪ L).
 
-What the comparison needs (the last session's 5–11 % "too stiff" came from the first two):
+What the comparison needs (without the first two it comes out 5–11 % "too stiff"):
 
 * **a block much larger than the contact**: a layer of depth L on a rigid base is stiffer
   than a half-space by about ``1.5·(2/3π)(3−2ν)/(1−ν)·a/L ≈ 1.1 a/L`` (the half-space

@@ -1,9 +1,9 @@
 """The twist solved on every device of a multi-process JAX job: the script each process runs.
 
-Every process runs this same script. :func:`jaxelastic.distributed.initialize_from_env`
+Every process runs this same script. :func:`jaxelastic.parallel.distributed.initialize_from_env`
 reads where it sits (``JAX_COORDINATOR_ADDRESS`` / ``JAX_NUM_PROCESSES`` /
 ``JAX_PROCESS_ID``, or a SLURM job step), every process builds the same twist
-(:func:`jaxelastic.benchmarks.twist`), :func:`jaxelastic.shard` splits it over all the
+(:func:`jaxelastic.verification.twist`), :func:`jaxelastic.shard` splits it over all the
 devices of the job (every process's), Newton + CG solves it, and process 0 writes the
 natural-order solution (``x.npy``) and ``result.json`` (steps, CG iterations, times, the
 partition) into ``--out``.
@@ -45,7 +45,7 @@ def main(argv=None) -> int:
 
     import jax
 
-    from jaxelastic.distributed import host_array, initialize_from_env
+    from jaxelastic.parallel.distributed import host_array, initialize_from_env
 
     info = (
         None if args.single else initialize_from_env(timeout_s=args.timeout)
@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     import numpy as np
 
     import jaxelastic as je
-    from jaxelastic import benchmarks
+    from jaxelastic import verification as benchmarks
     from jaxelastic.io import write_json
 
     b = benchmarks.twist(args.n)

@@ -1,16 +1,15 @@
 #!/usr/bin/env bash
-# The one prepared GPU check of jaxelastic (issue 12), run on a lent H200 through the
-# device tool; docs/guide/gpu.md has the exact `run` call.
+# The one prepared GPU check of jaxelastic, for an offline H200 machine
+# (docs/guide/gpu.md describes it).
 #
-#   bash scripts/gpu_check.sh fetch   # HERE (CPU machine, network): the wheels of the
+#   bash scripts/gpu_check.sh fetch   # on a CPU machine with network: the wheels of the
 #                                     # pure-Python deps the GPU image lacks -> out/wheels
-#   bash scripts/gpu_check.sh         # THERE (device machine, offline), carry out/wheels:
+#   bash scripts/gpu_check.sh         # on the GPU machine (offline), with out/wheels copied:
 #                                     # install them, bench_devices.py, GPU tests, bench_vmap.py
 #
-# Everything lands in $OUT (at most 8 files come back): gpu_check.log (all output),
-# env.txt, devices.json, tests.log, vmap.json. Each phase has its own time limit so the
-# whole check stays under ~7 minutes (run it with timeout_s=470: a rerun still fits in
-# the 15 minutes of device time); override with
+# Everything lands in $OUT (at most 8 files): gpu_check.log (all output), env.txt,
+# devices.json, tests.log, vmap.json. Each phase has its own time limit so the whole check
+# stays under ~7 minutes (a time limit of 470 s covers it); override with
 # DEVICES_BUDGET_S, TESTS_TIMEOUT_S, VMAP_TIMEOUT_S.
 set -u
 cd "$(dirname "$0")/.."

@@ -4,7 +4,7 @@ For every case: a refinement sequence × element variant (P1, P2, F-bar; see
 ``_report_common.ELEMENT_KW``) × solver setting (linear solver, preconditioner, Newton
 tolerance), with the error, mesh size h, dofs, wall time split into compilation (cold call
 minus warm call) and run (the warm second call, same compiled code), Newton and linear
-iterations. The problems are those of :mod:`jaxelastic.benchmarks` (their docstrings cite
+iterations. The problems are those of :mod:`jaxelastic.verification` (their docstrings cite
 the references; README section "Accuracy, error against run time, stability"):
 
 * ``cook``: Cook's membrane, linear, plane stress (E = 1, ν = 1/3, total shear 1 on x = 48),
@@ -53,7 +53,7 @@ from typing import NamedTuple
 import _report_common as rc
 import numpy as np
 
-from jaxelastic import benchmarks as bm
+from jaxelastic import verification as bm
 
 # --------------------------------------------------------------------------------------
 # solver settings and the generic row runner
@@ -239,7 +239,7 @@ def _p1_only(element: str, what: str) -> None:
 
 
 # --------------------------------------------------------------------------------------
-# cases: a benchmark of jaxelastic.benchmarks and how to score it
+# cases: a benchmark of jaxelastic.verification and how to score it
 # --------------------------------------------------------------------------------------
 
 
@@ -305,14 +305,14 @@ def build_uniaxial(k, element):
     from the reaction on x = 1."""
     import jax.numpy as jnp
 
-    from jaxelastic import loads
+    from jaxelastic import postprocess
 
     b = bm.uniaxial_tension(k, **rc.element_kw(element))
     m, ref = b.mesh, b.reference
     pull, corner = bm.pull_bc(m), int(b.probes["corner"][0])
 
     def evaluate(x):
-        R = loads.reaction_force(b.psi, jnp.asarray(x), m, b.params, pull)
+        R = postprocess.reaction_force(b.psi, jnp.asarray(x), m, b.params, pull)
         P_num, b_num = float(R[0]), float(x[corner, 1])
         err = max(abs(b_num - ref["b"]) / ref["b"], abs(P_num - ref["P11"]) / ref["P11"])
         return dict(value=P_num, reference=ref["P11"], lateral_stretch=b_num, error=err)

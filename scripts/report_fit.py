@@ -1,4 +1,4 @@
-"""Material-identification studies (issue 4): recovery, no inverse crime, noise, identifiability,
+"""Material-identification studies: recovery, no inverse crime, noise, identifiability,
 two-material bar.
 
 Problem: a neo-Hookean cantilever (2D plane strain: 4 × 1; 3D: 4 × 1 × 1), clamped at

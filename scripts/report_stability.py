@@ -124,7 +124,7 @@ def _compile_time(key, fn) -> float:
 def _volume_error(mesh, x) -> float:
     import jax.numpy as jnp
 
-    from jaxelastic.kinematics import deformation_gradients
+    from jaxelastic.mechanics.kinematics import deformation_gradients
 
     F = np.asarray(deformation_gradients(jnp.asarray(x), mesh, fbar=False))
     J = np.linalg.det(F)
@@ -250,7 +250,7 @@ def _start(X, name, seed=0):
 def _min_J(mesh, x):
     import jax.numpy as jnp
 
-    from jaxelastic.kinematics import deformation_gradients
+    from jaxelastic.mechanics.kinematics import deformation_gradients
 
     if not np.isfinite(x).all() or x.shape != np.asarray(mesh.points).shape:
         return None

@@ -18,10 +18,16 @@ import scipy.sparse as sp
 
 import jaxelastic as je
 from jaxelastic import loads, materials
-from jaxelastic.solvers import backends
-from jaxelastic.solvers.backends import DirectSolver, available_direct_backends
-from jaxelastic.solvers.host import NOT_POSITIVE_DEFINITE, SUCCESS, HostLinearSolver
-from jaxelastic.solvers.pattern import SparsityPattern
+from jaxelastic.solvers.host import (
+    NOT_POSITIVE_DEFINITE,
+    SUCCESS,
+    DirectSolver,
+    HostLinearSolver,
+    SparsityPattern,
+    available_direct_backends,
+    direct,
+    pardiso,
+)
 
 BACKENDS = available_direct_backends()
 
@@ -133,9 +139,9 @@ def test_fallback_chain_warns_once(monkeypatch):
     monkeypatch.setitem(sys.modules, "pypardiso.pardiso_wrapper", None)
     monkeypatch.setitem(sys.modules, "sksparse", None)
     monkeypatch.setitem(sys.modules, "sksparse.cholmod", None)
-    monkeypatch.setattr(backends, "_MKL", [])
-    monkeypatch.setattr(backends, "_WARNED", set())
-    assert backends._pardiso_function() is None
+    monkeypatch.setattr(pardiso, "_MKL", [])
+    monkeypatch.setattr(direct, "_WARNED", set())
+    assert pardiso.pardiso_function() is None
     assert available_direct_backends()[0] in ("cholespy", "splu")
     with pytest.warns(RuntimeWarning, match="falls back"):
         s = DirectSolver()

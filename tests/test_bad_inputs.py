@@ -1,4 +1,4 @@
-"""Bad input at the Python API gets a clear error before anything is compiled (issue 15).
+"""Bad input at the Python API gets a clear error before anything is compiled.
 
 One test per case, each asserting the message: positions and load arrays of the wrong
 shape, a ψ that does not return a scalar float, NaN/inf input outside jit (and NaN, not an
@@ -21,9 +21,10 @@ import pytest
 
 import jaxelastic as je
 from jaxelastic import io as jio
-from jaxelastic import loads
+from jaxelastic import loads, postprocess
 from jaxelastic import materials as M
-from jaxelastic.io import MeshIOError, TimeSeriesWriter, cell_fields, read_mesh, write_vtu
+from jaxelastic.io import MeshIOError, TimeSeriesWriter, read_mesh, write_vtu
+from jaxelastic.postprocess import cell_fields
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +132,7 @@ def test_shape_checks_are_static_under_jit_vmap_grad(square):
         f(jnp.zeros((9, 3)))
     pot = je.Potential(square, P2, f_ext=jnp.zeros((9, 2)), psi=M.linear)
     fs = jnp.zeros((3, 9, 2))
-    gs = jax.vmap(lambda f: je.potential.gradient(pot.replace(f_ext=f), X))(fs)
+    gs = jax.vmap(lambda f: je.mechanics.potential.gradient(pot.replace(f_ext=f), X))(fs)
     assert gs.shape == (3, 9, 2)
 
 
@@ -153,7 +154,7 @@ def test_load_builders_name_the_argument(square):
         loads.lumped_mass(square, np.ones(5))
     bc = loads.fix(square, [0])
     with pytest.raises(ValueError, match=re.escape("reaction_force: f_ext must have shape")):
-        loads.reaction_force(M.linear, square.points, square, P2, bc, f_ext=np.zeros((9, 3)))
+        postprocess.reaction_force(M.linear, square.points, square, P2, bc, f_ext=np.zeros((9, 3)))
 
 
 # ---------------------------------------------------------------------------- ψ
@@ -358,7 +359,7 @@ def test_interrupt_while_creating_the_temp_file_leaves_nothing(tmp_path, monkeyp
             raise KeyboardInterrupt
         return fd
 
-    monkeypatch.setattr(jio.os, "open", interrupted)
+    monkeypatch.setattr(jio.files.os, "open", interrupted)
     with pytest.raises(KeyboardInterrupt):
         jio.write_json(tmp_path / "summary.json", {"a": 1})
     monkeypatch.undo()
@@ -406,7 +407,7 @@ def test_read_mesh_of_other_empty_files_says_empty(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------
-# session 10 battery: refusals that used to end in a misleading status or a false SUCCESS
+# refusals that would otherwise end in a misleading status or a false SUCCESS
 # ----------------------------------------------------------------------------------------
 
 

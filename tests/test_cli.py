@@ -237,21 +237,23 @@ def test_crosscheck_dispatch(monkeypatch):
         seen["argv"] = argv
         return 0
 
-    fake = types.ModuleType("jaxelastic.crosscheck")
+    fake = types.ModuleType("jaxelastic.verification.derivative_check")
     fake.main = fake_main
-    monkeypatch.setitem(sys.modules, "jaxelastic.crosscheck", fake)
-    import jaxelastic
+    monkeypatch.setitem(sys.modules, "jaxelastic.verification.derivative_check", fake)
+    import jaxelastic.verification
 
-    monkeypatch.setattr(jaxelastic, "crosscheck", fake, raising=False)
+    monkeypatch.setattr(jaxelastic.verification, "derivative_check", fake)
     assert cli.main(["crosscheck", "--dims", "2", "--help-me"]) == 0
     assert seen["argv"] == ["--dims", "2", "--help-me"]
 
 
 def test_crosscheck_missing_module_is_a_clear_error(monkeypatch, capsys):
-    import jaxelastic
+    import jaxelastic.verification
 
-    monkeypatch.setitem(sys.modules, "jaxelastic.crosscheck", None)  # import raises
-    monkeypatch.delattr(jaxelastic, "crosscheck", raising=False)
+    monkeypatch.setitem(
+        sys.modules, "jaxelastic.verification.derivative_check", None
+    )  # import raises
+    monkeypatch.delattr(jaxelastic.verification, "derivative_check", raising=False)
     assert cli.main(["crosscheck"]) == 2
     assert "crosscheck module is not available" in capsys.readouterr().err
 

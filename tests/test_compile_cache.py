@@ -68,6 +68,7 @@ def test_second_cli_run_hits_the_cache_and_is_faster(tmp_path):
     assert cpu2 < 0.8 * cpu1, (cpu1, cpu2)
 
 
+@pytest.mark.extended
 def test_dynamic_scene_compiles_one_newton_solve(tmp_path):
     """The time steps and the static comparison of the default scene (small) share one
     compilation of each Newton piece: the static potential has the step potential's pytree

@@ -1,4 +1,4 @@
-"""Barrier contact against obstacles (issue 14, obstacle half): barrier, CCD, Hessian
+"""Barrier contact against obstacles: barrier, CCD, Hessian
 blocks, friction mollifier, static and dynamic solves with contact, gradients, Hertz.
 
 "No penetration ever" is checked on *every* distance the solver evaluates: the obstacles
@@ -17,8 +17,8 @@ import pytest
 
 import jaxelastic as je
 from jaxelastic import contact as jc
-from jaxelastic import potential as pot_mod
 from jaxelastic.contact import friction as fr
+from jaxelastic.mechanics import potential as pot_mod
 
 DHAT = 0.1
 
@@ -374,7 +374,7 @@ def test_kappa_adaptation_rescues_an_overloaded_contact():
     """A float32 block pressed on the ground by a load ~1e5× κ·d̂: with the automatic κ
     its gap closes towards float32's resolution and Newton stalls (MAX_STEPS); IPC's
     in-solve doubling of κ (``Newton(kappa_max_factor=100)``) converges, and the adapted
-    κ (``stats["kappa"]``, :func:`je.solvers.contact_potential`) carries the weight."""
+    κ (``stats["kappa"]``, :func:`je.solvers.solved_potential`) carries the weight."""
     dt = jnp.float32
     mesh = je.rectangle(4, 4, size=(1.0, 1.0), origin=(0.0, 5e-4), dtype=dt)
     mu, lam = je.lame(1e4, 0.3, dim=2)

@@ -1,11 +1,12 @@
 """The user-facing cross-check report (``python -m jaxelastic crosscheck``).
 
 Each (model, dimension) pair compiles one check function, so the whole battery (every model
-of :data:`~jaxelastic.crosscheck.MODELS` in 2D and 3D, 27 compilations) costs minutes of CPU
-on 2 cores; a 3D rubber/tissue model alone costs ~10x a 2D Lamé model. The default run checks
-a representative subset (:data:`QUICK`: every Lamé model in 2D, one invariant rubber model and
-the fibre model in 2D, the 3D-only model in 3D: the mesh checks in both dimensions); the full
-battery runs with ``-m slow`` (and ``python -m jaxelastic crosscheck``).
+of :data:`~jaxelastic.verification.derivative_check.MODELS` in 2D and 3D, 27 compilations)
+costs minutes of CPU on 2 cores; a 3D rubber/tissue model alone costs ~10x a 2D Lamé model.
+The default run checks a representative subset (:data:`QUICK`: every Lamé model in 2D, one
+invariant rubber model and the fibre model in 2D, the 3D-only model in 3D: the mesh checks
+in both dimensions); the full battery runs with ``-m slow`` (and ``python -m jaxelastic
+crosscheck``).
 """
 
 import json
@@ -14,8 +15,8 @@ import os
 import numpy as np
 import pytest
 
-from jaxelastic import crosscheck as cc
 from jaxelastic import materials
+from jaxelastic.verification import derivative_check as cc
 
 CHECKS = ("P", "forces-FD", "hvp-FD", "five-step")
 LAME_2D = tuple(m for m in materials.BUILTIN if m != "stable_neo_hookean_log")

@@ -68,6 +68,7 @@ def test_blocks_found():
     ]
 
 
+@pytest.mark.extended
 @pytest.mark.parametrize("path", _params())
 def test_page_code_runs(path: Path, tmp_path, monkeypatch, capsys):
     import jax

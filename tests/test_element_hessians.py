@@ -1,4 +1,4 @@
-"""Element Hessians by contraction (issue 11) and displacement-based F (issue 12).
+"""Element Hessians by contraction and displacement-based F.
 
 ``je.element_hessians`` forms Kₑ = Σ_q B_qᵀ Ĉ_q B_q (+ a rank-3 element term under
 F-bar/B-bar) from C = ∂²ψ/∂F²; ``element_hessians_reference`` differentiates the element
@@ -14,7 +14,7 @@ import pytest
 
 import jaxelastic as je
 from jaxelastic import materials as M
-from jaxelastic.energy import assemble, element_hessians_reference
+from jaxelastic.mechanics import assemble, element_hessians_reference
 
 LAME = M.Lame(jnp.asarray(1.3), jnp.asarray(2.1))
 
@@ -257,7 +257,7 @@ def test_projection_without_translations_equals_project_psd(dim, kind):
     out (``project_element_psd``): equal to ``project_psd`` of the unprojected element
     Hessians to round-off, on a state where most are indefinite; PSD, and the rigid
     translations stay in the kernel."""
-    from jaxelastic.energy import project_element_psd, project_psd
+    from jaxelastic.mechanics import project_element_psd, project_psd
 
     mesh = _mesh(dim, kind)
     x = _deformed(mesh, seed=2, scale=0.6)  # large enough that ψ's Hessian is indefinite

@@ -2,8 +2,9 @@
 inversion, composition with jit/vmap/grad, and a user-defined material end to end.
 
 Forces vs finite differences of the energy and HVP vs finite differences of the forces are
-checked for every built-in model by ``jaxelastic.crosscheck`` (``tests/test_crosscheck.py``
-asserts that every row passes); here the same FD checks run on two user-written models.
+checked for every built-in model by ``jaxelastic.verification.derivative_check``
+(``tests/test_crosscheck.py`` asserts that every row passes); here the same FD checks run on
+two user-written models.
 """
 
 import functools
@@ -16,8 +17,8 @@ from _common import IDS, MODEL_DIMS
 
 import jaxelastic as je
 from jaxelastic import materials as M
-from jaxelastic.energy import cell_params_axes
-from jaxelastic.kinematics import det
+from jaxelastic.mechanics import cell_params_axes
+from jaxelastic.mechanics.kinematics import det
 
 MU, LAM = 1.3, 2.9
 PARAMS = M.Lame(jnp.asarray(MU), jnp.asarray(LAM))

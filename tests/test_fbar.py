@@ -12,13 +12,13 @@ from _common import MODEL_DIMS, TINY_SCENE
 from test_p2 import _affine_patch, check_derivatives, linear_solve
 
 import jaxelastic as je
-from jaxelastic import benchmarks as bm
 from jaxelastic import loads as L
 from jaxelastic import materials, scene
-from jaxelastic.io import cell_fields
-from jaxelastic.kinematics import b_bar, det, f_bar
+from jaxelastic import verification as bm
+from jaxelastic.mechanics.kinematics import b_bar, det, f_bar
+from jaxelastic.mechanics.potential import Potential
 from jaxelastic.mesh import boundary_nodes
-from jaxelastic.potential import Potential
+from jaxelastic.postprocess import cell_fields
 
 # ------------------------------------------------------------------------- the F̄ maps
 
@@ -224,7 +224,7 @@ def test_scene_mesh_order_and_formulation():
 
 
 def _cook_linear(n, **kw):
-    """Nearly incompressible linear Cook (:func:`jaxelastic.benchmarks.cook_incompressible`):
+    """Nearly incompressible linear Cook (:func:`jaxelastic.verification.cook_incompressible`):
     vertical displacement at the mid-point (48, 52) of the loaded edge (ref 16.43)."""
     b = bm.cook_incompressible(n, **kw)
     x = linear_solve(b.psi, b.mesh, b.params, b.bc, np.asarray(b.pot.f_ext))
@@ -240,7 +240,7 @@ def test_cook_linear_nearly_incompressible_bbar():
 
 
 def _cook_neo_hookean(n, **kw):
-    """de Souza Neto et al. 1996 (:func:`jaxelastic.benchmarks.cook_neo_hookean`): vertical
+    """de Souza Neto et al. 1996 (:func:`jaxelastic.verification.cook_neo_hookean`): vertical
     displacement of the corner (48, 60) (ref 6.91), in 4 load increments."""
     b = bm.cook_neo_hookean(n, **kw)
     res = je.solve_incremental(b.pot, b.bc, steps=4)

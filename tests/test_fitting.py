@@ -170,6 +170,7 @@ def test_grad_dirichlet_value(beam2):
     assert _rel(float(g), fd) <= 1e-6, (float(g), fd)
 
 
+@pytest.mark.extended
 def test_grad_load_magnitude(beam2):
     b = beam2
     params = M.Lame(*(float(v) for v in M.lame(E_MOD, NU, dim=2)))
@@ -184,6 +185,7 @@ def test_grad_load_magnitude(beam2):
     assert _rel(float(g), fd) <= 1e-6, (float(g), fd)
 
 
+@pytest.mark.extended
 def test_grad_wrt_whole_potential_and_bc(beam2):
     """jax.grad w.r.t. the Potential and Dirichlet pytrees: f_ext cotangent is a field,
     the mask cotangent is float0, and the f_ext cotangent matches the load-scale gradient."""
@@ -335,6 +337,7 @@ def bar():
     return Bar()
 
 
+@pytest.mark.extended
 def test_fit_two_material_bar(bar):
     """Piecewise-constant E and nu over two regions (4 unknowns), bending + stretch, plane
     stress, from a uniform initial guess: both moduli well within 2 % (measured ~1e-12)."""
@@ -571,7 +574,7 @@ def mooney_rivlin(F_, p: MR):
     ``Ī₁ = J^(−2/3) I₁``, ``Ī₂ = J^(−4/3) I₂`` of C = FᵀF (2D: plane strain, F₃₃ = 1);
     +inf for J ≤ 0 (Holzapfel 2000, *Nonlinear Solid Mechanics*, §6.5, eq. 6.149)."""
     d = F_.shape[0]
-    J = je.kinematics.det(F_)
+    J = je.mechanics.kinematics.det(F_)
     C = F_.T @ F_
     I1 = jnp.trace(C) + (3 - d)
     I2 = 0.5 * (I1**2 - jnp.sum(C * C) - (3 - d))
@@ -647,6 +650,7 @@ def test_grad_mooney_rivlin_constants_fd(block):
         assert _rel(float(jnp.vdot(gz, v)), fd) <= 1e-6, (float(jnp.vdot(gz, v)), fd)
 
 
+@pytest.mark.extended
 def test_fit_mooney_rivlin_uniaxial_and_shear(block):
     """(c10, c01) of the user-written ψ from a uniaxial and a shear case (synthetic targets
     on the same mesh, κ held), from (0.2, 0.3): recovered to 1e-6 (measured ~1e-10)."""

@@ -1,6 +1,6 @@
-"""float32 end to end: the three cases of the issue converge and match float64, scenes
-honour ``[solver] precision``, nothing is promoted to float64, and the float64 round-off
-floor exit still reports SUCCESS.
+"""float32 end to end: three problems (the README example, the twist, the default scene)
+converge and match float64, scenes honour ``[solver] precision``, nothing is promoted to
+float64, and the float64 round-off floor exit still reports SUCCESS.
 
 x64 is enabled (conftest), so every float32 case builds its mesh in float32 explicitly:
 float32 arrays with x64 on, as a ``precision = "float32"`` scene does.
@@ -19,10 +19,10 @@ import jaxelastic as je
 from jaxelastic import dynamics
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic.benchmarks import twist
 from jaxelastic.scene import SceneError, load_scene
 from jaxelastic.scene.build import build, linear_solver_name
 from jaxelastic.scene.run import run_scene
+from jaxelastic.verification import torsion as twist
 
 F32, F64 = jnp.float32, jnp.float64
 
@@ -42,7 +42,7 @@ def float_dtypes(tree) -> set[str]:
 
 
 # --------------------------------------------------------------------------------------
-# the three cases of the issue
+# three problems: the README example, the twist, the default scene
 # --------------------------------------------------------------------------------------
 
 
@@ -50,7 +50,7 @@ def readme_problem(dtype):
     """The first example of the README (its own ψ, 1,920 tets, gravity) in ``dtype``."""
 
     def psi(F, p):
-        J = je.kinematics.det(F)
+        J = je.mechanics.kinematics.det(F)
         return p.mu / 2 * (J ** (-2 / 3) * jnp.sum(F * F) - 3) + p.lam / 2 * (J - 1) ** 2
 
     mesh = je.box(20, 4, 4, size=(5.0, 1.0, 1.0), dtype=dtype)
@@ -168,6 +168,7 @@ def test_float32_programs_hold_no_float64():
         assert "xf32>" in text and not arrays, (name, sorted(set(arrays)))
 
 
+@pytest.mark.extended
 def test_float32_scene_summary_records_precision_and_linear_solver(tmp_path):
     scene = json.loads(json.dumps(TINY_SCENE))
     scene["solver"] = {"precision": "float32"}
@@ -203,6 +204,7 @@ def test_linear_solver_name_reads_the_bound_object():
 # --------------------------------------------------------------------------------------
 
 
+@pytest.mark.extended
 @pytest.mark.parametrize(
     "psi",
     [pytest.param(M.linear, marks=pytest.mark.slow), M.neo_hookean],

@@ -1,4 +1,4 @@
-"""jaxelastic.solvers.heap: freed heap memory back to the operating system."""
+"""jaxelastic.solvers.host.heap: freed heap memory back to the operating system."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import textwrap
 
 import pytest
 
-from jaxelastic.solvers import heap
+from jaxelastic.solvers.host import heap
 
 
 def test_release_free_memory_returns_bool():
@@ -24,7 +24,7 @@ def test_map_large_blocks_returns_freed_blocks_at_once():
         """
         import sys
         import numpy as np
-        from jaxelastic.solvers import heap
+        from jaxelastic.solvers.host import heap
 
         def rss():
             for line in open("/proc/self/status"):

@@ -114,6 +114,7 @@ def test_jvp_matches_fd_and_transposes(beam):
     assert _rel(J_rev, J) <= 1e-9
 
 
+@pytest.mark.extended
 def test_jvp_vjp_consistency_field_and_dirichlet(beam):
     """⟨ẋ, x̄⟩ from forward mode equals ⟨θ̇, θ̄⟩ from the default reverse mode, for a
     per-cell μ field together with a prescribed end displacement; the Dirichlet tangent
@@ -152,6 +153,7 @@ def test_jvp_vjp_consistency_field_and_dirichlet(beam):
     np.testing.assert_allclose(np.asarray(xdot_s)[beam.right], np.broadcast_to(direction, (3, 2)))
 
 
+@pytest.mark.extended
 def test_failed_solve_gives_nan_derivatives_and_gradient_error(beam):
     """One Newton step cannot reach rtol = 1e-12: the forward tangent and the reverse
     gradient are NaN (never a gradient at a non-equilibrium point), je.solvers.value_and_grad
@@ -192,6 +194,7 @@ def _tip_loss(beam, th, solver):
     return jnp.sum((x[beam.tip] - jnp.asarray(beam.X[beam.tip]) + 0.3) ** 2)
 
 
+@pytest.mark.extended
 def test_host_adjoint_matches_cg_and_reuses_factorisation(host_beam):
     """With a bound Direct or AMG solver the adjoint is device PCG preconditioned by the
     last Newton factorisation (or AMG hierarchy): it converges to the matrix-free CG
@@ -234,6 +237,7 @@ def test_linear_solver_resolution_under_jit(beam):
             jax.jit(x_of, static_argnums=1)(pot, linear)
 
 
+@pytest.mark.extended
 def test_vmap_over_materials_cg_and_host_refusal(beam):
     """jax.vmap of je.solve over two (μ, λ) sets with linear="cg" gives the two separate
     solves; host solvers under vmap raise a ValueError that says so."""
@@ -297,6 +301,7 @@ def test_rollout_gradient_matches_fd_bdf2(beam):
     _check_rollout_grad(beam, "bdf2")
 
 
+@pytest.mark.extended
 def test_rollout_matches_simulate(beam):
     """The differentiated rollout follows the same trajectory as the host loop simulate
     (same Newton solves, one compiled step per time step)."""

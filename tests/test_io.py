@@ -12,16 +12,9 @@ import pytest
 
 import jaxelastic as je
 from jaxelastic import materials
-from jaxelastic.io import (
-    MeshData,
-    MeshIOError,
-    TimeSeriesWriter,
-    cell_fields,
-    nodal_stress,
-    read_mesh,
-    write_vtu,
-)
+from jaxelastic.io import MeshData, MeshIOError, TimeSeriesWriter, read_mesh, write_vtu
 from jaxelastic.mesh import MeshError, boundary_facets
+from jaxelastic.postprocess import cell_fields, nodal_stress
 
 
 def _square_with_groups():
@@ -715,7 +708,7 @@ def test_nodal_stress_of_a_linear_field_on_p2_is_exact(tmp_path):
 
 def test_pvd_times_are_rounded_to_the_step():
     # t accumulated as k·h in floating point: 0.30000000000000004, 0.7000000000000001, …
-    from jaxelastic.io import _time_labels
+    from jaxelastic.io.vtk import _time_labels
 
     times, t = [], 0.0
     for _ in range(12):
@@ -783,7 +776,7 @@ def test_nodal_stress_reads_the_kirsch_concentration_at_a_hole(tmp_path):
 def test_write_vtu_precomputed_fields_and_uncompressed_match(tmp_path):
     """fields= (one stress evaluation shared with a picture) and compression=None write
     the same arrays as the default; the uncompressed file is a plain binary VTU."""
-    from jaxelastic.io import stress_fields
+    from jaxelastic.postprocess import stress_fields
 
     mesh = je.box(3, 2, 2)
     X = np.asarray(mesh.points)

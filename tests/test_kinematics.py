@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxelastic as je
-from jaxelastic import kinematics as K
+from jaxelastic.mechanics import kinematics as K
 
 SETTINGS = settings(max_examples=30, deadline=None)
 

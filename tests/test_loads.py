@@ -7,6 +7,7 @@ import pytest
 import jaxelastic as je
 from jaxelastic import loads as L
 from jaxelastic import materials as M
+from jaxelastic import postprocess
 
 MU, LAM = (float(v) for v in M.lame(1.0e4, 0.3))
 PARAMS = M.Lame(MU, LAM)
@@ -249,7 +250,7 @@ def test_facet_tractions_uniform_stretch_linear(blk):
         fac = L.facets_where(blk, lambda X, k=axis, v=value: np.isclose(X[:, k], v))
         Nf, _ = L.facet_normals(blk.points, fac)
         np.testing.assert_allclose(Nf, np.tile(N, (fac.shape[0], 1)), atol=1e-14)
-        tau = L.facet_tractions(M.linear, x, blk, PARAMS, fac)
+        tau = postprocess.facet_tractions(M.linear, x, blk, PARAMS, fac)
         assert tau.shape == (fac.shape[0], 3)
         np.testing.assert_allclose(tau, np.tile(expect, (fac.shape[0], 1)), atol=1e-9 * MU)
 
@@ -260,14 +261,18 @@ def test_facet_tractions_simple_shear_neo_hookean(rect):
     X = np.asarray(rect.points)
     x = jnp.asarray(X + np.stack([gamma * X[:, 1], 0 * X[:, 1]], 1))
     top = L.facets_where(rect, lambda Y: np.isclose(Y[:, 1], 1.0))
-    tau = L.facet_tractions(M.neo_hookean, x, rect, PARAMS, top)
+    tau = postprocess.facet_tractions(M.neo_hookean, x, rect, PARAMS, top)
     np.testing.assert_allclose(tau, np.tile([MU * gamma, 0.0], (top.shape[0], 1)), atol=1e-9 * MU)
     # per-cell parameters are picked from the owning cell
     mu_cells = np.full(rect.n_cells, MU)
-    tau2 = L.facet_tractions(M.neo_hookean, x, rect, M.Lame(jnp.asarray(mu_cells), LAM), top)
+    tau2 = postprocess.facet_tractions(
+        M.neo_hookean, x, rect, M.Lame(jnp.asarray(mu_cells), LAM), top
+    )
     np.testing.assert_allclose(tau2, tau)
     with pytest.raises(ValueError, match="not a facet"):
-        L.facet_tractions(M.neo_hookean, x, rect, PARAMS, np.array([[0, rect.n_nodes - 1]]))
+        postprocess.facet_tractions(
+            M.neo_hookean, x, rect, PARAMS, np.array([[0, rect.n_nodes - 1]])
+        )
 
 
 def test_reaction_force_balances_applied_load(blk):
@@ -278,7 +283,9 @@ def test_reaction_force_balances_applied_load(blk):
     f = f + L.point_load(blk, L.nodes_in_box(blk, [1, 1, 1], [1, 1, 1]), [0.0, -150.0, 0.0])
     pot = je.Potential(mesh=blk, params=PARAMS, f_ext=jnp.asarray(f), psi=M.neo_hookean)
     res = je.solve(pot, clamp)
-    R = np.asarray(L.reaction_force(M.neo_hookean, res.x, blk, PARAMS, clamp, f_ext=pot.f_ext))
+    R = np.asarray(
+        postprocess.reaction_force(M.neo_hookean, res.x, blk, PARAMS, clamp, f_ext=pot.f_ext)
+    )
     np.testing.assert_allclose(R, -f.sum(0), rtol=0, atol=1e-7 * np.abs(f).sum())
     # away from the supports the nodal force balance holds dof by dof
     g = -np.asarray(je.forces(M.neo_hookean, res.x, blk, PARAMS)) - f
@@ -286,6 +293,6 @@ def test_reaction_force_balances_applied_load(blk):
     assert np.abs(g[free]).max() < 1e-6 * np.abs(f).sum()
     # at the rest shape (not in equilibrium) the "reaction" is just −Σ_D f_ext
     R0 = np.asarray(
-        L.reaction_force(M.neo_hookean, blk.points, blk, PARAMS, clamp, f_ext=pot.f_ext)
+        postprocess.reaction_force(M.neo_hookean, blk.points, blk, PARAMS, clamp, f_ext=pot.f_ext)
     )
     np.testing.assert_allclose(R0, -f[np.asarray(clamp.mask)[:, 0]].sum(0), atol=1e-12)

@@ -11,8 +11,8 @@ from _common import IDS, MODEL_DIMS
 from scipy.optimize import brentq
 
 from jaxelastic import materials as M
-from jaxelastic import reference
-from jaxelastic.kinematics import cofactor
+from jaxelastic.materials import reference
+from jaxelastic.mechanics.kinematics import cofactor
 
 MU, LAM = 1.3, 2.9  # distinct values, so that a swapped μ/λ shows
 PARAMS = M.Lame(jnp.asarray(MU), jnp.asarray(LAM))
@@ -169,7 +169,8 @@ def test_P_and_hessian_match_finite_differences_inverted(name, d):
 @pytest.mark.parametrize("name,d", MODEL_DIMS, ids=IDS)
 @pytest.mark.parametrize("params", [PARAMS, PARAMS_STIFF], ids=["nu~0.35", "nu~0.49"])
 def test_autodiff_P_equals_hand_P(name, d, params):
-    """``first_piola(psi)`` vs the closed forms of :mod:`jaxelastic.reference`, ≤ 1e-12."""
+    """``first_piola(psi)`` vs the closed forms of :mod:`jaxelastic.materials.reference`,
+    ≤ 1e-12."""
     parts = [random_Fs(200, d, seed=100 + d), special_Fs(d)]
     if name != "neo_hookean":
         parts.append(random_Fs(60, d, seed=200 + d, smin=0.3, smax=3.0, inverted=True))

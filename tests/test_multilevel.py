@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import jaxelastic as je
-from jaxelastic import benchmarks
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic import potential as P
+from jaxelastic import verification as benchmarks
+from jaxelastic.mechanics import potential as P
 from jaxelastic.solvers import cg
 from jaxelastic.solvers.multilevel import build_hierarchy, preconditioner
 
@@ -47,6 +47,7 @@ def test_hierarchy_has_levels_and_binds_once(beam):
         je.Multilevel(coarse_scale=2.5)
 
 
+@pytest.mark.extended
 def test_matches_direct_2d(beam):
     mesh, bc, f = beam
     pot = _pot(mesh, f, 1e3)
@@ -186,12 +187,13 @@ def test_iterations_grow_slowly_with_size():
     assert its[2] <= its[0] + 8 and its[2] <= 1.6 * its[0], its
 
 
+@pytest.mark.extended
 def test_projected_upper_by_blocks(beam, monkeypatch):
     """The host Newton retry's projection (a PSD test per block of cells, then eigh of the
     failing cells only, padded; Python loops of compiled calls with tail blocks) assembles
     the upper data of projecting every cell, to round-off; cells that pass the test are
     the positive semidefinite ones."""
-    from jaxelastic.energy import project_psd
+    from jaxelastic.mechanics import project_psd
     from jaxelastic.solvers.linear import assemble_upper
     from jaxelastic.solvers.newton import retry as N
 

@@ -13,18 +13,21 @@ import numpy as np
 import pytest
 
 import jaxelastic as je
-from jaxelastic import potential as pm
-from jaxelastic.benchmarks.twist import twist
+from jaxelastic.mechanics import potential as pm
 from jaxelastic.solvers import cg
 from jaxelastic.solvers.multilevel import ShardedHierarchy, preconditioner, sharded_preconditioner
+from jaxelastic.verification.torsion import twist
 
 S = 4
 ML = je.Multilevel(max_coarse=20)  # twist n = 4: 375 -> 36 -> 6 dofs
 
-pytestmark = pytest.mark.skipif(
-    len(jax.devices()) < S,
-    reason="needs 4 devices: XLA_FLAGS=--xla_force_host_platform_device_count=4 before jax",
-)
+pytestmark = [
+    pytest.mark.extended,  # multi-device comparisons: the second tier
+    pytest.mark.skipif(
+        len(jax.devices()) < S,
+        reason="needs 4 devices: XLA_FLAGS=--xla_force_host_platform_device_count=4 before jax",
+    ),
+]
 
 
 def _rel(a, b) -> float:
@@ -131,7 +134,7 @@ def test_preconditioner_matches_one_device(tw, cycle):
         assert any(b in coll["all-reduce"] for b in (lv1.n * 6 * 8, 2 * lv1.n * 6 * 8))
 
 
-@pytest.mark.slow  # 11-15 s; the preconditioner comparison stays in the default run
+@pytest.mark.slow  # 11-15 s
 def test_cg_iterations_match_one_device(tw):
     """PCG on the linearised twist: the same iteration count on 4 shards as on one
     device, and the same solution to 1e-12."""

@@ -2,15 +2,16 @@
 
 The kernel is the interpreter running pytest: a throw-away kernel spec (argv
 ``sys.executable -m ipykernel_launcher``) in a temp dir put first on ``JUPYTER_PATH``, so a
-fresh ``python3 -m venv .venv && pip install -e .[dev]`` works whatever kernels are
+fresh ``python3 -m venv .venv && pip install -e '.[all,dev]'`` works whatever kernels are
 installed globally or per user. Each notebook runs in a temporary working directory, and
 the executed copy is never written back over the source.
 
 A notebook that reads ``JAXELASTIC_NOTEBOOK_FAST`` (``FAST = os.environ.get(FAST_ENV) == "1"``:
 fewer time steps, a smaller grid, fewer fits; every claim still asserted) runs in that mode
-in the default test run and at full size under ``-m slow``; the documentation build
+under ``-m extended`` and at full size under ``-m slow``; the documentation build
 (``mkdocs build`` in ``.ci/run``) executes every notebook at full size too. A notebook without
-the switch runs at full size in the default run, except those in ``SLOW_ONLY``.
+the switch runs at full size under ``-m extended``, except those in ``SLOW_ONLY``. The whole
+file is in the second tier (``pytest -m 'extended or slow'``, run by ``.ci/run``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ import pytest
 from jupyter_client.kernelspec import KernelSpecManager
 from nbclient import NotebookClient
 
+pytestmark = pytest.mark.extended  # the second tier: pytest -m 'extended or slow'
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 NOTEBOOK_DIR = ROOT / "notebooks"
 NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
@@ -32,13 +35,13 @@ KERNEL_NAME = "jaxelastic-test-python"
 CELL_TIMEOUT = 600  # seconds, per cell
 FAST_ENV = "JAXELASTIC_NOTEBOOK_FAST"
 # run only under -m slow: notebook 04 drives the accuracy and stability report scripts,
-# which tests/test_reports.py runs in the default run, and `mkdocs build` in .ci/run
-# executes it at full size (67 s of the default run's 15 min, session 5)
+# which tests/test_reports.py runs, and `mkdocs build` in .ci/run
+# executes it at full size (67 s on the 2-core machine, 2026-12-02, commit 5628254)
 SLOW_ONLY = {"04_error_vs_runtime_and_stability"}
 
 
 def _params():
-    """``(path, fast)`` per notebook: the fast variant (if it has one) in the default run,
+    """``(path, fast)`` per notebook: the fast variant (if it has one) under ``-m extended``,
     the full size under ``-m slow``."""
     params = []
     for path in NOTEBOOKS:

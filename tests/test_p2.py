@@ -17,7 +17,7 @@ from _common import MODEL_DIMS
 
 import jaxelastic as je
 from jaxelastic import loads as L
-from jaxelastic import materials
+from jaxelastic import materials, postprocess
 from jaxelastic.io import MeshData, read_mesh, write_vtu
 from jaxelastic.mesh import (
     MeshError,
@@ -301,7 +301,7 @@ def test_facet_tractions_p2_uniform_stress():
     x = jnp.asarray(np.asarray(m.points) @ F0.T)
     p = je.Lame(1.0, 2.0)
     f = boundary_facets(m)
-    tau = L.facet_tractions(materials.neo_hookean, x, m, p, f)
+    tau = postprocess.facet_tractions(materials.neo_hookean, x, m, p, f)
     P = np.asarray(je.first_piola(materials.neo_hookean)(jnp.asarray(F0), p))
     n, _ = L.facet_normals(m.points, f)
     np.testing.assert_allclose(tau, n @ P.T, atol=1e-12)

@@ -12,9 +12,9 @@ TEXT = README.read_text(encoding="utf-8")
 
 # .ci/run runs the second command verbatim; the first is what a new user types
 SETUP = (
-    "python3 -m venv .venv && .venv/bin/pip install -q -e '.[dev]' && "
+    "python3 -m venv .venv && .venv/bin/pip install -q -e '.[all,dev]' && "
     ".venv/bin/python -m jaxelastic run --out out/default",
-    "python3 -m venv .venv && .venv/bin/pip install -q -e '.[dev]' && "
+    "python3 -m venv .venv && .venv/bin/pip install -q -e '.[all,dev]' && "
     ".venv/bin/python -m pytest -q",
 )
 

@@ -1,8 +1,8 @@
 """``scripts/report_fit.py`` on small settings: it writes its JSON and figure, and its numbers
-are what the issue demands (recovery on the target's own mesh within 0.1 %, ν poorly
+are the ones the studies are for (recovery on the target's own mesh within 0.1 %, ν poorly
 identified from bending alone and well identified with a stretch case added).
 
-The default run does the identifiability study with ``--quick``; the other studies
+The extended tier does the identifiability study with ``--quick``; the other studies
 (recovery in 2D and 3D, no inverse crime, noise, two-material bar; four minutes of
 compilation on small meshes) are ``slow``.
 """
@@ -28,6 +28,7 @@ def _run(tmp_path, studies):
     return out, json.loads((out / "report_fit.json").read_text())
 
 
+@pytest.mark.extended
 def test_quick_identifiability(tmp_path):
     out, rep = _run(tmp_path, "identifiability")
     ident = rep["identifiability"]

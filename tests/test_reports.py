@@ -1,9 +1,10 @@
 """The accuracy and stability reports (``scripts/report_*.py``) on small settings: they
 write their files, and their numbers are the physics the README promises.
 
-The default run keeps to a few compilations (Cook P1 with a direct solver, the patch
-tests, a handful of stability scenes); convergence rates, P2/F-bar, twist and the full
-stability table are ``slow``.
+The default run keeps to a few compilations (the Timoshenko error norms, a handful of
+stability scenes); the quick accuracy report (Cook P1 with a direct solver, the patch
+tests) is ``extended``; convergence rates, P2/F-bar, twist and the full stability table
+are ``slow``.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 
 import jaxelastic as je
-from jaxelastic import benchmarks as bm
+from jaxelastic import verification as bm
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 
@@ -139,10 +140,11 @@ def test_twist_benchmark_setup():
 
 
 # --------------------------------------------------------------------------------------
-# accuracy report, default run
+# accuracy report, extended tier
 # --------------------------------------------------------------------------------------
 
 
+@pytest.mark.extended
 def test_accuracy_quick_cook_and_patch(tmp_path):
     res = acc.run(
         tmp_path,

@@ -1,4 +1,4 @@
-"""Rubber and soft-tissue models (jaxelastic.rubber, jaxelastic.fibres).
+"""Rubber and soft-tissue models (jaxelastic.materials.rubber, jaxelastic.materials.fibres).
 
 Rest state, linearisation to the stated shear and bulk moduli, frame invariance, finite
 Hessians at F = I and at repeated stretches (Ogden's principal stretches), closed-form
@@ -20,9 +20,9 @@ from scipy.optimize import brentq, least_squares
 import jaxelastic as je
 from jaxelastic import loads as L
 from jaxelastic import materials as M
-from jaxelastic import reference
-from jaxelastic.energy import cell_params_axes
-from jaxelastic.rubber import ARRUDA_BOYCE_COEFFS
+from jaxelastic.materials import reference
+from jaxelastic.materials.rubber import ARRUDA_BOYCE_COEFFS
+from jaxelastic.mechanics import cell_params_axes
 
 NAMES = tuple(M.FAMILIES)
 RUBBER = tuple(n for n in NAMES if n != "holzapfel_gasser_ogden")
@@ -190,7 +190,7 @@ def _stretch_bc(mesh, stretches):
 def _solve_F(psi, p, mesh, bc):
     pot = je.Potential(mesh=mesh, params=p, psi=psi)
     sol = je.solve(pot, bc, solver=je.Newton(rtol=1e-11, max_steps=60))
-    F = np.asarray(je.kinematics.deformation_gradients(sol.x, mesh))[:, 0]  # (c, 3, 3)
+    F = np.asarray(je.mechanics.kinematics.deformation_gradients(sol.x, mesh))[:, 0]  # (c, 3, 3)
     return F
 
 
@@ -361,7 +361,7 @@ def test_hgo_per_cell_directions_through_energy():
     p = p._replace(a02=jnp.broadcast_to(jnp.asarray(p.a02), (n, 3)))
     X = np.asarray(mesh.points)
     x = jnp.asarray(X @ np.diag([1.2, 0.95, 0.95]).T + 0.02 * rng.uniform(-1, 1, X.shape))
-    F = np.asarray(je.kinematics.deformation_gradients(x, mesh))[:, 0]
+    F = np.asarray(je.mechanics.kinematics.deformation_gradients(x, mesh))[:, 0]
     W = np.asarray(mesh.weights)[:, 0]
     by_hand = sum(
         W[c]
@@ -611,7 +611,7 @@ def test_scene_fibres_from_cell_data(tmp_path):
     X = np.asarray(bt.mesh.points)
     x = jnp.asarray(X @ np.diag([1.3, 0.9, 0.95]).T + 0.05 * X[:, [1]] * X[:, [0]] ** 2)
     e = float(je.energy(bt.psi, x, bt.mesh, bt.params))
-    F = np.asarray(je.kinematics.deformation_gradients(x, bt.mesh))[:, 0]  # P1: one point
+    F = np.asarray(je.mechanics.kinematics.deformation_gradients(x, bt.mesh))[:, 0]  # P1: one point
     psi = jax.jit(bt.psi)
     vol = np.asarray(bt.mesh.volumes)
     cells = [

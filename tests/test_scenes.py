@@ -150,7 +150,7 @@ BAD = [
     ({"dirichlet.0.components": [0, 0]}, "[dirichlet][0].components repeats a component"),
     ({"dirichlet.0.ramp_time": 1.0}, "[dirichlet][0].ramp_time is only valid in a dynamic"),
     ({"dirichlet.0.displacement": [0.0]}, "[dirichlet][0].displacement must have 2 comp"),
-    ({"dirichlet.0.displacement": "jaxelastic.examples:nope"}, "has no attribute"),
+    ({"dirichlet.0.displacement": "jaxelastic.scene.examples:nope"}, "has no attribute"),
     ({"material.plane": "plate"}, "[material].plane must be one of 'strain', 'stress'"),
     ({"output.every": 0}, "[output].every must be >= 1, got 0"),
     ({"output.probes": [[1.0, 2.0, 3.0]]}, "[output].probes[0] must have 2 components"),
@@ -221,7 +221,10 @@ def test_bad_scene_3d_specific():
             "[material].model 'stable_neo_hookean_log' fails at F = I in 2D",
         ),
         (
-            {"dirichlet.0.displacement": "jaxelastic.examples:pendulum_velocity", "mesh.n": [2, 1]},
+            {
+                "dirichlet.0.displacement": "jaxelastic.scene.examples:pendulum_velocity",
+                "mesh.n": [2, 1],
+            },
             None,
         ),
     ],
@@ -476,7 +479,7 @@ DYN2D = apply_overrides(
     {
         "material.density": 100.0,
         "integrator": {"type": "dynamic", "h": 0.01, "duration": 0.1},
-        "dirichlet.0.displacement": "jaxelastic.examples:shear_wave",
+        "dirichlet.0.displacement": "jaxelastic.scene.examples:shear_wave",
         "dirichlet.0.ramp_time": 0.5,
     },
 )
@@ -489,7 +492,7 @@ def test_time_dependent_dirichlet_and_initial_velocity():
             "dirichlet": [
                 {
                     "nodes": {"plane": {"axis": "x", "value": 0.0}},
-                    "displacement": "jaxelastic.examples:shear_wave",
+                    "displacement": "jaxelastic.scene.examples:shear_wave",
                     "ramp_time": 0.5,
                 },
                 {
@@ -660,11 +663,11 @@ def test_nice_125_and_the_factor_in_the_title():
 def test_static_outputs_evaluate_the_stresses_once(tmp_path, monkeypatch):
     """The VTU file and the picture of a static run share one stress evaluation, and the
     picture is coloured by the nodal von Mises stress the VTU holds."""
-    import jaxelastic.io as jio
+    import jaxelastic.io.vtk as jvtk
     import jaxelastic.scene.outputs as jout
 
     calls, seen = [], {}
-    orig_fields = jio.stress_fields
+    orig_fields = jvtk.stress_fields
 
     def counting(*args, **kwargs):
         calls.append(1)
@@ -676,7 +679,7 @@ def test_static_outputs_evaluate_the_stresses_once(tmp_path, monkeypatch):
         seen["values"] = kwargs.get("values")
         return orig_figure(*args, **kwargs)
 
-    monkeypatch.setattr(jio, "stress_fields", counting)
+    monkeypatch.setattr(jvtk, "stress_fields", counting)
     monkeypatch.setattr(jout, "stress_fields", counting)
     monkeypatch.setattr(jout._plot, "final_shape_figure", figure)
     out = tmp_path / "out"

@@ -1,4 +1,4 @@
-"""Self-contact (issue 14): primitive distances, broad phase, additive CCD, the pair
+"""Self-contact: primitive distances, broad phase, additive CCD, the pair
 barrier in Newton, and scenes that would self-intersect without contact.
 
 The no-intersection checks of the solved shapes use a triangle–triangle intersection

@@ -1,4 +1,4 @@
-"""Self-contact friction (issue 14, item 4): IPC's lagged smoothed Coulomb friction
+"""Self-contact friction: IPC's lagged smoothed Coulomb friction
 between boundary primitive pairs (:mod:`jaxelastic.contact.pair_friction`).
 
 Derivatives are checked against central differences per pair kind (3D point–triangle,
@@ -251,7 +251,7 @@ def _press_and_shear(dim, mu, press=0.03, shear=0.02, gap=0.01, steps=4):
     top_mask = np.zeros_like(X, bool)
     top_mask[top] = True
     bc_top = je.Dirichlet(mask=jnp.asarray(top_mask), values=jnp.asarray(x))
-    R = np.asarray(je.loads.reaction_force(pot.psi, res.x, mesh, pot.params, bc_top))
+    R = np.asarray(je.postprocess.reaction_force(pot.psi, res.x, mesh, pot.params, bc_top))
     increments = [r["s"] for r in res.stats["increments"] if r["accepted"]]
     return dict(Ft=abs(R[0]), Fn=abs(R[-1]), slip=slip, contact=pot.contact, res=res,
                 increments=increments, x=x)  # fmt: skip
@@ -287,6 +287,7 @@ def test_blocks_stick_or_slide(dim, rel):
     assert out[1.0] > 2 * out[0.1]
 
 
+@pytest.mark.extended
 def test_contact_hook_and_refresh():
     """``Contact`` carries the pair friction: energy, gradient, forces and the Hessian
     split (node blocks in Ke + coupling) include it; a broad phase re-run keeps the lagged

@@ -15,10 +15,10 @@ from jax.sharding import PartitionSpec as P
 
 import jaxelastic as je
 from jaxelastic import dynamics, loads
-from jaxelastic import potential as pm
-from jaxelastic.benchmarks.twist import twist
 from jaxelastic.materials import Lame
-from jaxelastic.mesh.partition import partition_mesh
+from jaxelastic.mechanics import potential as pm
+from jaxelastic.parallel.partition import partition_mesh
+from jaxelastic.verification.torsion import twist
 
 S = 4
 
@@ -138,6 +138,7 @@ _MESHES = {
 _SLOW = ("tri3", "tet4x8-fbar", "tri6")
 
 
+@pytest.mark.extended
 @pytest.mark.parametrize(
     "name", [pytest.param(n, marks=pytest.mark.slow) if n in _SLOW else n for n in _MESHES]
 )
@@ -177,6 +178,7 @@ def test_kernels_exchange_interface_only(tw):
 _SOLVER = je.Newton(linear="cg", rtol=1e-10)
 
 
+@pytest.mark.extended
 def test_solve_matches_one_device(tw):
     """Newton-CG (block Jacobi) on 4 shards gives the one-device answer."""
     b, pot_s, bc_s, part = tw
@@ -211,7 +213,8 @@ def _loss_and_grad(pot, bc, to_nat, to_pad_cells, w):
     return jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))
 
 
-def test_gradient_matches_one_device(tw):  # issue 13 target, in CI (14 s)
+@pytest.mark.extended
+def test_gradient_matches_one_device(tw):
     """Newton-CG solve and its implicit gradient w.r.t. E and a per-cell field."""
     b, pot_s, bc_s, part = tw
     n_cells = b.pot.mesh.n_cells
@@ -229,8 +232,8 @@ def test_gradient_matches_one_device(tw):  # issue 13 target, in CI (14 s)
     assert np.linalg.norm(gf2 - gf1) <= 1e-12 * np.linalg.norm(gf1)
 
 
-@pytest.mark.slow  # 13-17 s; the static solve and its gradient stay in the default run
-def test_dynamic_step_matches_one_device():  # issue 13 target
+@pytest.mark.slow  # 13-17 s
+def test_dynamic_step_matches_one_device():
     mesh = je.box(3, 2, 2)  # 72 tets: 18 per shard
     mass = jnp.asarray(loads.lumped_mass(mesh, 1.0))
     g = jnp.asarray(loads.gravity_load(mesh, 1.0, (0.0, 0.0, -9.81)))

@@ -1,7 +1,7 @@
 """Host sparse assembly and the factorise / apply back ends of the device CG.
 
-Covers :mod:`jaxelastic.solvers.pattern` (assembly, elimination, rigid-body modes),
-:mod:`jaxelastic.solvers.backends` (DirectSolver, AMGSolver) and
+Covers :mod:`jaxelastic.solvers.host.pattern` (assembly, elimination, rigid-body modes),
+:mod:`jaxelastic.solvers.host` (DirectSolver, AMGSolver) and
 :class:`jaxelastic.solvers.host.HostLinearSolver` (factor / apply). The Krylov loop of the
 library runs on the device (``solvers.linear.cg``); here a tiny NumPy CG (:func:`_pcg`, a
 test utility) checks that the AMG V-cycle is a good preconditioner.
@@ -19,22 +19,20 @@ import scipy.sparse as sp
 
 import jaxelastic
 from jaxelastic.materials import Lame, neo_hookean
-from jaxelastic.solvers.backends import (
-    BACKEND_KINDS,
-    CHEBYSHEV_INTERVAL,
-    RATE_MIN_RATIOS,
-    AMGSolver,
-    DirectSolver,
-    available_direct_backends,
-    make_backend,
-)
 from jaxelastic.solvers.host import (
+    BACKEND_KINDS,
     NONFINITE,
     NOT_POSITIVE_DEFINITE,
     SUCCESS,
+    AMGSolver,
+    DirectSolver,
     HostLinearSolver,
+    SparsityPattern,
+    available_direct_backends,
+    make_backend,
+    rigid_body_modes,
 )
-from jaxelastic.solvers.pattern import SparsityPattern, rigid_body_modes
+from jaxelastic.solvers.host.amg import CHEBYSHEV_INTERVAL, RATE_MIN_RATIOS
 
 PARAMS = Lame(mu=jnp.asarray(3.0), lam=jnp.asarray(5.0))
 TOKEN = np.int32(0)
@@ -462,7 +460,7 @@ def test_amg_chebyshev_smoother():
     dense eigenvalue on every smoothed level, the polynomial damps the error on the
     interval it was built for (|1 − t q(t)| < 1), and the V-cycle is a symmetric positive
     definite preconditioner; a second update warm-starts the estimate."""
-    from jaxelastic.solvers.backends import CHEBYSHEV_DEGREE, _chebyshev_coefficients
+    from jaxelastic.solvers.host.amg import CHEBYSHEV_DEGREE, _chebyshev_coefficients
 
     mesh, fixed, Ke, md, rhs = _problem("twist")
     host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
@@ -505,7 +503,7 @@ def test_amg_warm_lanczos_estimate_and_rebuilt_sizes():
     """A refresh re-estimates λ_max(D⁻¹A) by LANCZOS_WARM_STEPS steps from the previous
     Ritz vector, within 2 % below the dense eigenvalue; a rebuild starts the coarse levels
     cold (their stored Ritz vectors, here of other sizes, belong to the old bases)."""
-    from jaxelastic.solvers.backends import LANCZOS_WARM_STEPS, _lanczos_max
+    from jaxelastic.solvers.host.amg import LANCZOS_WARM_STEPS, _lanczos_max
 
     mesh, fixed, Ke, md, rhs = _problem("twist")
     host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
@@ -532,7 +530,7 @@ def test_host_cg_matches_device_cg():
     CG's iterations on the same matrix and preconditioner: same iterate to round-off, same
     iteration count; non-positive curvature and the iteration cap give the device's
     statuses."""
-    from jaxelastic.solvers.backends import host_cg
+    from jaxelastic.solvers.host import host_cg
     from jaxelastic.solvers.linear import cg
     from jaxelastic.solvers.results import Status
 
@@ -747,7 +745,7 @@ import json, resource, sys
 import jax
 jax.config.update("jax_enable_x64", True)
 import jaxelastic as je
-from jaxelastic import benchmarks
+from jaxelastic import verification as benchmarks
 b = benchmarks.twist(int(sys.argv[1]))
 newton = je.solvers.prepare_solver(je.Newton(rtol=1e-8, linear="direct"), b.mesh, b.bc)
 for _ in range(2):  # cold and warm, as a scene's static solve then a time step
@@ -781,10 +779,10 @@ def test_memory_estimate_matches_measured_peak():
 def test_split_matvec_equals_the_product(monkeypatch):
     """The row-split, threaded product (AMG's large level matrices) gives the product bit
     for bit: each row is summed in the same order; empty and uneven parts included."""
-    from jaxelastic.solvers import backends
+    from jaxelastic.solvers.host import products
 
-    monkeypatch.setattr(backends, "SPLIT_MIN_ENTRIES", 0)
-    monkeypatch.setattr(backends, "_cores", lambda: 3)
+    monkeypatch.setattr(products, "SPLIT_MIN_ENTRIES", 0)
+    monkeypatch.setattr(products, "_cores", lambda: 3)
     rng = np.random.default_rng(3)
     A = sp.random(90, 60, density=0.2, random_state=4, format="csr")
     B = sp.kron(sp.random(30, 20, density=0.3, random_state=5), np.ones((3, 3))).tobsr((3, 3))
@@ -792,21 +790,21 @@ def test_split_matvec_equals_the_product(monkeypatch):
     C = sp.csr_matrix((np.arange(1.0, 6.0), ([0, 0, 1, 1, 2], [0, 5, 1, 7, 3])), shape=(40, 8))
     for M in (A, B, C):
         v = rng.standard_normal(M.shape[1])
-        mv = backends.split_matvec(M)
+        mv = products.split_matvec(M)
         assert mv != M.__matmul__  # (the split path, not the fallback)
         np.testing.assert_array_equal(mv(v), M @ v)
-    monkeypatch.setattr(backends, "SPLIT_MIN_ENTRIES", 1 << 20)
-    assert backends.split_matvec(A) == A.__matmul__  # small: the plain product
+    monkeypatch.setattr(products, "SPLIT_MIN_ENTRIES", 1 << 20)
+    assert products.split_matvec(A) == A.__matmul__  # small: the plain product
 
 
 def test_galerkin_product_equals_the_product(monkeypatch):
     """The row-split, threaded ``R A P`` (AMG's Galerkin refresh from the host Newton loop)
     gives ``R @ A @ P`` bit for bit, in the same format and block size; CSR and BSR,
     uneven and empty row parts included; the stacking keeps the structure."""
-    from jaxelastic.solvers import backends
+    from jaxelastic.solvers.host import products
 
-    monkeypatch.setattr(backends, "SPLIT_MIN_ENTRIES", 0)
-    monkeypatch.setattr(backends, "_cores", lambda: 3)
+    monkeypatch.setattr(products, "SPLIT_MIN_ENTRIES", 0)
+    monkeypatch.setattr(products, "_cores", lambda: 3)
     A = sp.random(60, 60, density=0.1, random_state=1, format="csr")
     A = (A + A.T + 60 * sp.eye(60)).tocsr()
     P = sp.random(60, 12, density=0.2, random_state=2, format="csr")
@@ -817,24 +815,24 @@ def test_galerkin_product_equals_the_product(monkeypatch):
     Pb = sp.kron(P, np.ones((3, 6))).tobsr((3, 6))
     for R_, A_, P_ in ((P.T.tocsr(), A, P), (Pz.T.tocsr(), A, Pz), (Pb.T.tobsr(), Ab, Pb)):
         ref = R_ @ A_ @ P_
-        out = backends.galerkin_product(R_, A_, P_)
+        out = products.galerkin_product(R_, A_, P_)
         assert out.format == ref.format and out.shape == ref.shape
         if ref.format == "bsr":
             assert out.blocksize == ref.blocksize
         np.testing.assert_array_equal(out.toarray(), ref.toarray())
         out.check_format(full_check=True)
-    monkeypatch.setattr(backends, "SPLIT_MIN_ENTRIES", 1 << 20)
+    monkeypatch.setattr(products, "SPLIT_MIN_ENTRIES", 1 << 20)
     R = P.T.tocsr()
-    small = backends.galerkin_product(R, A, P)  # small: the plain product
+    small = products.galerkin_product(R, A, P)  # small: the plain product
     np.testing.assert_array_equal(small.toarray(), (R @ A @ P).toarray())
 
 
 def test_amg_threaded_solve_equals_serial(monkeypatch):
     """``AMGSolver.solve(threads=True)`` (the host Newton loop's call from Python) runs the
     same CG with the same V-cycles as without threads: the same iterate bit for bit."""
-    from jaxelastic.solvers import backends
+    from jaxelastic.solvers.host import products
 
-    monkeypatch.setattr(backends, "SPLIT_MIN_ENTRIES", 0)
+    monkeypatch.setattr(products, "SPLIT_MIN_ENTRIES", 0)
     mesh, fixed, Ke, md, rhs = _problem("twist")
     host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
     s = AMGSolver(mesh.points, fixed, sa_options=dict(max_coarse=10), pattern=host.pattern)

@@ -43,7 +43,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from ..energy import project_psd
+from ..mechanics.psd import project_psd
 from .barrier import barrier_d1
 from .distance import edge_edge_case, edge_edge_mollifier, point_triangle_case
 from .friction import f0, tangent_basis

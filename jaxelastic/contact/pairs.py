@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ..energy import project_psd
+from ..mechanics.psd import project_psd
 from .barrier import barrier
 from .broadphase import (
     HEADROOM,

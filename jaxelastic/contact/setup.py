@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..mechanics.potential import Potential, elastic_element_hessians, node_hessian_blocks
 from ..mesh import boundary_nodes
-from ..potential import Potential, elastic_element_hessians, node_hessian_blocks
 from .barrier import adapt_kappa, default_dhat, kappa_from_stiffness
 from .friction import EPS_REL
 from .pairs import make_self_contact

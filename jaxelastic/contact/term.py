@@ -1,7 +1,7 @@
 """The contact term of the potential: barrier (+ lagged friction) on boundary nodes, and
 self-contact between boundary primitives.
 
-:class:`Contact` is a frozen pytree held by :class:`~jaxelastic.potential.Potential`
+:class:`Contact` is a frozen pytree held by :class:`~jaxelastic.mechanics.potential.Potential`
 (``contact=None`` by default: then nothing of this module is traced). For contact nodes
 ``a`` (the boundary nodes; P2: corner and mid-side) and obstacles ``o``:
 
@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..energy import project_psd
+from ..mechanics.psd import project_psd
 from .barrier import barrier, barrier_d1, kappa_update
 from .ccd import ccd_step, safe_norm
 from .friction import FrictionLag, friction_node_energy, tangent_basis

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..dynamics import Integrator, State, rollout
 from ..loads import Dirichlet
-from ..potential import Potential
+from ..mechanics.potential import Potential
 from ..solvers import ImplicitAdjoint, Newton, PreparedSolver, Status, prepare_solver, solve
 from .observations import observation_loss
 

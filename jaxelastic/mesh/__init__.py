@@ -4,9 +4,8 @@ Modules: :mod:`~jaxelastic.mesh.core` (the pytree and its validating constructor
 :mod:`~jaxelastic.mesh.elements` (reference elements and quadrature rules),
 :mod:`~jaxelastic.mesh.generators` (rectangle, box, Cook's membrane),
 :mod:`~jaxelastic.mesh.quadratic` (P2 / composite lifting, formulation switch) and
-:mod:`~jaxelastic.mesh.boundary` (boundary facets and nodes); for sharded solves
-:mod:`~jaxelastic.mesh.partition` (cells into parts, the padded numbering) and
-:mod:`~jaxelastic.mesh.halo` (the per-shard tables and ghost exchange).
+:mod:`~jaxelastic.mesh.boundary` (boundary facets and nodes). Sharded solves partition a
+mesh over devices with :mod:`jaxelastic.parallel`.
 """
 
 from . import elements as elements

@@ -17,7 +17,7 @@ Elements: P1 (``tri3``/``tet4``, the default), P2 (``tri6``/``tet10``, ``order=2
 generators or :func:`~jaxelastic.mesh.to_quadratic`) and the composite F-bar element
 (``tri3x4``/``tet4x8``, ``formulation="fbar"`` with order 1). ``Mesh.formulation`` (static)
 selects F-bar/B-bar in the energy kernels; see :mod:`jaxelastic.mesh.elements` and
-:func:`~jaxelastic.kinematics.f_bar`.
+:func:`~jaxelastic.mechanics.kinematics.f_bar`.
 """
 
 from __future__ import annotations
@@ -59,9 +59,9 @@ class Mesh:
             ``"tet4"``, ``"tri6"``, ``"tet10"``, ``"tri3x4"``, ``"tet4x8"``).
         formulation: static; ``"standard"`` (ψ at every quadrature point's F) or ``"fbar"``
             (F̄ = (J̄/J)^{1/d} F with J̄ the cell average of J, see
-            :func:`~jaxelastic.kinematics.deformation_gradients`), or ``"bbar"`` (its
+            :func:`~jaxelastic.mechanics.kinematics.deformation_gradients`), or ``"bbar"`` (its
             small-strain analogue for small-strain materials, Hughes 1980).
-        halo: a :class:`~jaxelastic.mesh.halo.Halo` when the mesh is sharded over devices
+        halo: a :class:`~jaxelastic.parallel.halo.Halo` when the mesh is sharded over devices
             (:func:`jaxelastic.shard`: the energy kernels then run per shard under
             ``shard_map`` and exchange interface nodes only), else None.
     """
@@ -153,7 +153,7 @@ def from_arrays(
         dtype: float dtype of the stored arrays, float32 or float64 (default: JAX's default
             float, float64 with x64 enabled, else float32, whatever the points' dtype). It
             is kept as given: a float32 mesh with x64 enabled computes in float32, and
-            :class:`~jaxelastic.potential.Potential` refuses float64 loads or parameters
+            :class:`~jaxelastic.mechanics.potential.Potential` refuses float64 loads or parameters
             on it rather than mixing precisions (the loads builders return the mesh's
             dtype).
         formulation: ``"standard"``, ``"fbar"`` or ``"bbar"`` (not for P1 cells, where it

@@ -4,7 +4,7 @@ A scene names a mesh, a material, boundary conditions, loads, solver settings, a
 integrator and outputs (reference: ``docs/scenes.md``, generated from the schema).
 :func:`load_scene` validates it (unknown keys, wrong types and impossible values are
 refused with a :class:`SceneError` naming the key, the value and what is valid),
-:func:`build` turns it into arrays and a :class:`~jaxelastic.potential.Potential`,
+:func:`build` turns it into arrays and a :class:`~jaxelastic.mechanics.potential.Potential`,
 :func:`run_scene` solves it and writes the outputs (``jaxelastic run SCENE --out DIR``),
 and :func:`run_fit` identifies E and ν as its ``[fit]`` table says (``jaxelastic fit``).
 :func:`json_schema` is the JSON Schema of a scene file (``jaxelastic schema``).

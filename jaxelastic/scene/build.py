@@ -2,8 +2,8 @@
 
 :func:`build` turns the scene into a mesh (generated, or read from a file and optionally
 lifted to P2 / the composite F-bar element), ψ, parameters, Dirichlet data, a
-:class:`~jaxelastic.potential.Potential` holding only the parts the scene needs (no mass in
-statics, no ``f_ext`` without loads), a bound :class:`~jaxelastic.Newton` solver and an
+:class:`~jaxelastic.mechanics.potential.Potential` holding only the parts the scene needs (no
+mass in statics, no ``f_ext`` without loads), a bound :class:`~jaxelastic.Newton` solver and an
 integrator. Problems only visible with the mesh (a selection matching no node, an unknown
 group, a user function failing) are :class:`~jaxelastic.scene.errors.SceneError` s naming
 the key.
@@ -31,6 +31,7 @@ from ..materials import (
     Lame,
     lame,
 )
+from ..mechanics.potential import Potential
 from ..mesh import (
     Mesh,
     MeshError,
@@ -42,7 +43,6 @@ from ..mesh import (
     with_formulation,
 )
 from ..mesh.elements import edge_table
-from ..potential import Potential
 from ..solvers import CG, Newton, PreparedSolver, prepare_solver
 from ..solvers.newton import is_quadratic
 from . import memory
@@ -85,7 +85,7 @@ class Built(NamedTuple):
             file (named sets), or None for a generator.
         psi: the strain-energy density; params: ``Lame(mu, lam)``, or the parameter type
             of a rubber/tissue model (e.g. ``MooneyRivlin``; HGO fibres per cell).
-        potential: base :class:`~jaxelastic.potential.Potential` (``mass`` only in
+        potential: base :class:`~jaxelastic.mechanics.potential.Potential` (``mass`` only in
             dynamics, ``f_ext`` only with loads or gravity).
         bc: Dirichlet data with the full prescribed displacement (statics) or at t = 0.
         bc_fn: ``s ↦ Dirichlet``: in statics ``s`` is the load factor in [0, 1], in
@@ -127,12 +127,12 @@ class Sharded(NamedTuple):
     ``partition.to_natural``.
 
     Attributes:
-        potential: the sharded :class:`~jaxelastic.potential.Potential` (padded nodes and
+        potential: the sharded :class:`~jaxelastic.mechanics.potential.Potential` (padded nodes and
             cells); bc: its Dirichlet data at the full load (statics) or t = 0;
         bc_fn: ``s ↦`` sharded Dirichlet data (as :attr:`Built.bc_fn`);
         solver: the Newton solver bound to the sharded mesh;
         x0: ``(S·n_own, dim)`` padded rest positions; v0: padded initial velocities or None;
-        partition: the :class:`~jaxelastic.mesh.partition.Partition`;
+        partition: the :class:`~jaxelastic.parallel.partition.Partition`;
         devices: the devices used (``str`` of each);
         rest: ``(S·n_own, dim)`` NumPy padded rest positions (where padded nodes are fixed).
     """
@@ -785,8 +785,8 @@ def check_devices(n: int) -> list:
             f"{n} devices asked for, but JAX sees {len(devs)} ({kind}): for host CPU devices "
             f"start with XLA_FLAGS={HOST_DEVICES_FLAG}={n} in the environment (before JAX "
             "starts); for several GPUs or hosts, launch one process per device and call "
-            "jaxelastic.distributed.initialize_from_env() (see the guide 'Many devices and "
-            "hosts')"
+            "jaxelastic.parallel.distributed.initialize_from_env() (see the guide 'Many "
+            "devices and hosts')"
         )
     return list(devs[:n])
 
@@ -813,7 +813,7 @@ def _padded_dirichlet(part, bc: Dirichlet, X_pad: np.ndarray, like: Dirichlet) -
 
 def _shard(scene: Scene, pot: Potential, bc_fn, bc: Dirichlet, v0) -> Sharded:
     """The :class:`Sharded` parts of a scene with ``[solver] devices > 1``."""
-    from ..sharding import shard
+    from ..parallel.sharding import shard
 
     n = scene.spec.solver.devices
     key = "[solver].devices"  # (host linear solvers and [fit] are refused by the schema)
@@ -858,7 +858,7 @@ def build(scene) -> Built:
     """Turn a scene (a :class:`~jaxelastic.scene.load.Scene`, a path, a shipped name or a
     dict) into arrays.
 
-    The :class:`~jaxelastic.potential.Potential` holds only what the scene needs: no mass
+    The :class:`~jaxelastic.mechanics.potential.Potential` holds only what the scene needs: no mass
     in statics, no ``f_ext`` without loads or gravity.
 
     Raises:

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..contact import Box, HalfSpace, Sphere, make_contact
-from ..potential import Potential
+from ..mechanics.potential import Potential
 from .callables import CallableSpecError, import_callable
 from .load import Scene
 from .schema import ContactSpec

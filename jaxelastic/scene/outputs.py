@@ -20,11 +20,12 @@ import warnings
 import jax
 import numpy as np
 
-from .. import loads
 from .. import plot as _plot
-from ..energy import energy
-from ..io import TimeSeriesWriter, stress_fields, to_jsonable, write_atomic, write_json
+from .. import postprocess
+from ..io import TimeSeriesWriter, to_jsonable, write_atomic, write_json
 from ..loads import Dirichlet
+from ..mechanics.kernels import energy
+from ..postprocess import stress_fields
 from .build import Built, linear_solver_name
 from .errors import SceneError
 from .load import Scene
@@ -201,7 +202,7 @@ def finish_summary(path: str, summary: dict, t_start: float, **fields) -> dict:
 # ----------------------------------------------------------------------------------------
 
 _energy_jit = jax.jit(energy, static_argnums=0)
-_reaction_jit = jax.jit(loads.reaction_force, static_argnums=0)
+_reaction_jit = jax.jit(postprocess.reaction_force, static_argnums=0)
 
 
 def elastic_energy(built: Built, x) -> float:
@@ -248,7 +249,7 @@ def partition_report(built: Built) -> dict | None:
     """How a scene with ``[solver] devices > 1`` was split (None on one device): the
     devices, the method and, per shard, cells, owned nodes, ghost and interface nodes and
     the halo bytes one exchange of a nodal vector receives
-    (:meth:`~jaxelastic.mesh.partition.Partition.stats`)."""
+    (:meth:`~jaxelastic.parallel.partition.Partition.stats`)."""
     sh = built.shard
     if sh is None:
         return None
@@ -305,7 +306,7 @@ meshio read both; ``"zlib"`` here trades the time back for 1.6× smaller files."
 
 
 def state_stress_fields(built: Built, x) -> tuple[dict, dict] | None:
-    """The :func:`jaxelastic.io.stress_fields` ``(cells, points)`` of positions ``x``
+    """The :func:`jaxelastic.postprocess.stress_fields` ``(cells, points)`` of positions ``x``
     ``(n_nodes, dim)`` [m] as the VTU files write them (the scene's ``plane``), evaluated
     once for both :func:`write_static_vtu` and :func:`static_figure` (``fields=``); None
     for non-finite ``x`` (the VTU writer then refuses with its own message)."""
@@ -341,7 +342,7 @@ VON_MISES_LABEL = "von Mises stress [Pa] (nodal)"
 
 def von_mises_nodal(built: Built, x, *, fields=None):
     """The recovered nodal von Mises stress ``(n_nodes,)`` [Pa] of positions ``x``
-    (:func:`jaxelastic.io.nodal_stress`), or None where it cannot be evaluated (then the
+    (:func:`jaxelastic.postprocess.nodal_stress`), or None where it cannot be evaluated (then the
     pictures are coloured by |u|). ``fields``: :func:`state_stress_fields` of ``x`` if
     already evaluated (for the VTU file), taken instead of evaluating them again."""
     if fields is None:

@@ -19,9 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import dynamics
-from ..distributed import host_array
 from ..io import TimeSeriesWriter
 from ..loads import Dirichlet
+from ..parallel.distributed import host_array
 from ..solvers import Solution, SolveError, solve_incremental
 from . import interrupt, memory
 from .build import Built, build, padded_dirichlet

@@ -36,7 +36,7 @@ from pydantic import (
     model_validator,
 )
 
-from ..materials import BUILTIN, FAMILIES, FAMILY_PARAMS
+from ..materials import BUILTIN, FAMILIES, FAMILY_KEYS, FAMILY_POSITIVE_KEYS, MODEL_NAMES
 from ..mesh import FORMULATIONS
 from .callables import CallableSpecError, import_callable, n_positional
 from .errors import SceneError, fail, from_validation_error, type_name
@@ -321,13 +321,7 @@ class MeshSpec(Table):
 # ----------------------------------------------------------------------------------------
 
 
-_MODEL_NAMES = [*BUILTIN, *FAMILIES]
-
-FAMILY_KEYS = {name: tuple(f()._fields) for name, f in FAMILY_PARAMS.items()}
-"""Rubber/tissue model name → its ``[material]`` parameter keys (the fields of its
-parameter type, e.g. ``("c10", "c01", "kappa")`` for ``mooney_rivlin``), all required."""
-
-_FAMILY_POSITIVE = frozenset({"c10", "kappa", "Jm", "lambda_m", "k2", "bulk", "mu"})
+_MODEL_NAMES = list(MODEL_NAMES)
 
 
 def _material_model(v: str, info: ValidationInfo) -> str:
@@ -520,7 +514,7 @@ class MaterialSpec(Table):
             v = getattr(self, k)
             if v is None:
                 raise fail(f"{{at}}.{k} is required for {self.model!r} (keys: {', '.join(keys)})")
-            if k in _FAMILY_POSITIVE and not v > 0:
+            if k in FAMILY_POSITIVE_KEYS and not v > 0:
                 raise fail(f"{{at}}.{k} must be > 0, got {v!r}")
             if k in ("a01", "a02") and _is_vector(v) and (len(v) not in (2, 3) or not any(v)):
                 raise fail(f"{{at}}.{k} must be a nonzero vector of 2 or 3 numbers, got {list(v)}")

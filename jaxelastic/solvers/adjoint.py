@@ -46,9 +46,9 @@ import numpy as np
 from jax import lax
 from jax.ad_checkpoint import checkpoint_name
 
-from .. import potential as pot_mod
 from ..loads import Dirichlet
-from ..potential import Potential
+from ..mechanics import potential as pot_mod
+from ..mechanics.potential import Potential
 from .linear import LinearState, NewtonSystem, exact_system
 from .newton import Newton, minimize, solved_potential
 from .results import Solution, Status

@@ -20,7 +20,7 @@ from collections.abc import Callable
 import jax.numpy as jnp
 
 from ..loads import Dirichlet
-from ..potential import Potential
+from ..mechanics.potential import Potential
 from .equilibrium import PreparedSolver, prepare_solver, solve
 from .newton import Newton
 from .results import Solution, SolveError, Status

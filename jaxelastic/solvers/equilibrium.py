@@ -18,17 +18,17 @@ import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
-from ..distributed import host_array
-from ..energy import check_psi
 from ..loads import Dirichlet
 from ..materials import Lame, check_lame
+from ..mechanics.checks import check_psi
+from ..mechanics.potential import Potential, is_array
 from ..mesh import Mesh
-from ..potential import Potential, is_array
+from ..parallel.distributed import host_array
 from .adjoint import ImplicitAdjoint, differentiable_minimize
+from .host import rigid_body_modes
 from .linear import LinearState, init_linear, resolve
 from .newton import Newton, is_quadratic
 from .newton import terms as newton_terms
-from .pattern import rigid_body_modes
 from .results import Solution, SolveError, Status
 
 __all__ = ["solve", "PreparedSolver", "prepare_solver", "bind_solver", "is_traced"]

@@ -5,7 +5,7 @@ Two halves:
 * **Setup on the host, once per (mesh, Dirichlet mask)** (:func:`build_hierarchy`, NumPy):
   greedy aggregation of the node graph (Vaněk, Mandel & Brezina 1996, "Algebraic multigrid
   by smoothed aggregation", Computing 56:179), the rigid-body modes
-  (:func:`~jaxelastic.solvers.pattern.rigid_body_modes`) as near-null space, orthonormalised
+  (:func:`~jaxelastic.solvers.host.pattern.rigid_body_modes`) as near-null space, orthonormalised
   per aggregate into a tentative prolongator ``T`` with one ``(b, m)`` block per fine node
   (``b`` = dofs per node on that level, ``m`` = 3 in 2D, 6 in 3D), and integer index maps:
   the padded row layout (ELL) of every level's block matrix, the element-block → level-0
@@ -58,7 +58,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .blocks import block_inverse_or_diagonal
-from .pattern import rigid_body_modes
+from .host import rigid_body_modes
 
 __all__ = [
     "Hierarchy",
@@ -404,7 +404,7 @@ def canonical_order(cells, points) -> tuple[np.ndarray, np.ndarray]:
     last coordinate first (ties: by index), which is the numbering of
     :func:`~jaxelastic.mesh.box` and :func:`~jaxelastic.mesh.rectangle` itself. The
     aggregation visits nodes in this order, so a renumbered or padded copy of a mesh (its
-    sharded layout, :mod:`jaxelastic.mesh.partition`) gets the same aggregates, coarse
+    sharded layout, :mod:`jaxelastic.parallel.partition`) gets the same aggregates, coarse
     levels and power-iteration start as the mesh itself.
 
     Args:
@@ -720,7 +720,7 @@ def preconditioner(
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True, eq=False, repr=False)
 class ShardedHierarchy:
-    """The hierarchy of a sharded mesh (:class:`~jaxelastic.mesh.halo.Halo`): level 0 as
+    """The hierarchy of a sharded mesh (:class:`~jaxelastic.parallel.halo.Halo`): level 0 as
     per-shard local tables (leading shard axis ``S``, sharded), the coarse levels as the
     :class:`Level` s of the one-device hierarchy (replicated). A pytree, equal only to
     itself.
@@ -832,7 +832,7 @@ def build_sharded_hierarchy(h: Hierarchy, halo, cells) -> ShardedHierarchy:
         h: :func:`build_hierarchy` of the padded mesh (unsmoothed; its level-0 ``T`` and
             aggregates are in the padded numbering, its coarse levels those of the natural
             mesh, by :func:`canonical_order`).
-        halo: the mesh's :class:`~jaxelastic.mesh.halo.Halo` (host-readable tables).
+        halo: the mesh's :class:`~jaxelastic.parallel.halo.Halo` (host-readable tables).
         cells: ``(S·c_loc, k)`` padded connectivity.
     """
     lv0 = h.levels[0]
@@ -957,7 +957,7 @@ def sharded_preconditioner(
     coarse_scale: float = 1.3,
 ) -> Callable[[jax.Array], jax.Array]:
     """:func:`preconditioner` on a sharded mesh (same arguments, in the global padded
-    layout; ``halo`` is the mesh's :class:`~jaxelastic.mesh.halo.Halo`).
+    layout; ``halo`` is the mesh's :class:`~jaxelastic.parallel.halo.Halo`).
 
     Long because: the per-shard setup (level-0 partial matrix, block Jacobi, power
     iteration, partial Galerkin product) and the per-shard cycle are closures over the same

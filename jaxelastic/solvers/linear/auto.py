@@ -107,6 +107,6 @@ def missing_host_package(kind: str) -> str | None:
         except ImportError:
             return "pyamg"
         return None
-    from ..backends import available_direct_backends
+    from ..host.direct import available_direct_backends
 
     return "pypardiso" if available_direct_backends() == ("splu",) else None

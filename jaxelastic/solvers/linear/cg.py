@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ...potential import node_hessian_blocks
-from ...sharding import is_sharded
+from ...mechanics.potential import node_hessian_blocks
+from ...parallel.sharding import is_sharded
 from ..blocks import block_inverse_or_diagonal
 from ..results import Solution, Status
 from .protocol import LinearSolver

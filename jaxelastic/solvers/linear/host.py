@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ..host import HostLinearSolver
-from ..pattern import local_upper
+from ..host.assembled import HostLinearSolver
+from ..host.pattern import local_upper
 from ..results import Solution, Status
 from .cg import cg
 from .protocol import LinearSolver, LinearState

@@ -8,9 +8,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from ...distributed import host_array
-from ...potential import mass_diagonal
-from ..host import ContentCache, content_key
+from ...mechanics.potential import mass_diagonal
+from ...parallel.distributed import host_array
+from ..host.assembled import ContentCache, content_key
 from ..multilevel import (
     Hierarchy,
     ShardedHierarchy,

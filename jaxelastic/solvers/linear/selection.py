@@ -8,7 +8,7 @@ import warnings
 import jax
 from jax.core import Tracer
 
-from ...sharding import is_sharded
+from ...parallel.sharding import is_sharded
 from .auto import LINEAR_SOLVERS, choose
 from .cg import CG
 from .host import AMG, Direct, HostSolver

@@ -14,8 +14,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ... import potential as pot_mod
-from ...potential import Potential
+from ...mechanics import potential as pot_mod
+from ...mechanics.potential import Potential
 
 __all__ = [
     "NewtonSystem",

@@ -33,10 +33,10 @@ import numpy as np
 from jax import lax
 from jax.core import Tracer
 
-from ... import potential as pot_mod
 from ...loads import Dirichlet
-from ...potential import Potential
-from ..heap import release_free_memory
+from ...mechanics import potential as pot_mod
+from ...mechanics.potential import Potential
+from ..host.heap import release_free_memory
 from ..linear import LinearState, NewtonSystem, assemble_upper, newton_system
 from ..linear.system import operator_is_assembled
 from ..results import RUNNING, Solution, Status

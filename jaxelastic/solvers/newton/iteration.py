@@ -7,12 +7,12 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ... import potential as pot_mod
-from ...energy import hvp
-from ...fusion import always, computed
-from ...kinematics import deformation_gradients, det
 from ...loads import Dirichlet
-from ...potential import Potential
+from ...mechanics import potential as pot_mod
+from ...mechanics.fusion import always, computed
+from ...mechanics.kernels import hvp
+from ...mechanics.kinematics import deformation_gradients, det
+from ...mechanics.potential import Potential
 from ..linear.system import NewtonSystem
 from ..results import RUNNING, Solution, Status
 from .settings import Newton

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ...energy import project_element_psd, project_psd
+from ...mechanics.psd import project_element_psd, project_psd
 from ..linear import assemble_upper
 from ..results import Solution, Status
 

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from ...loads import Dirichlet
-from ...potential import Potential
+from ...mechanics.potential import Potential
 from ..results import RUNNING, Solution, Status
 from . import terms
 from .iteration import min_J, norm, status_of, value_and_grad

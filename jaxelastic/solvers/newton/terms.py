@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ... import potential as pot_mod
-from ...potential import Potential
+from ...mechanics import potential as pot_mod
+from ...mechanics.potential import Potential
 
 __all__ = [
     "init_states",
