@@ -6,6 +6,15 @@ autodiff, on linear and quadratic triangles (2D) and tetrahedra (3D), with an F-
 for nearly incompressible solids; differentiate through static and dynamic solves by the
 implicit function theorem and fit material parameters with optax.
 
+The top level holds what a user types (mesh constructors and I/O, ``Lame`` and
+``neo_hookean``, ``fix``, ``Potential``, ``solve`` and the solver settings, ``simulate``,
+``fit``, ``shard``); everything else lives in its package: :mod:`~jaxelastic.mesh`,
+:mod:`~jaxelastic.materials`, :mod:`~jaxelastic.kinematics` (the toolbox of a ψ author),
+:mod:`~jaxelastic.mechanics`, :mod:`~jaxelastic.loads`, :mod:`~jaxelastic.solvers`,
+:mod:`~jaxelastic.dynamics`, :mod:`~jaxelastic.fitting`, :mod:`~jaxelastic.contact`,
+:mod:`~jaxelastic.io`, :mod:`~jaxelastic.postprocess`, :mod:`~jaxelastic.parallel`,
+:mod:`~jaxelastic.verification`.
+
 The library never changes JAX's global configuration: enable float64 yourself with
 ``jax.config.update("jax_enable_x64", True)`` (tests, scripts and the CLI do).
 """
@@ -21,30 +30,21 @@ from . import mesh as mesh
 from . import parallel as parallel
 from . import postprocess as postprocess
 from . import solvers as solvers
-from . import verification as benchmarks
 from . import verification as verification
 from .dynamics import Integrator as Integrator
+from .dynamics import simulate as simulate
+from .fitting import fit as fit
 from .io import read_mesh as read_mesh
 from .io import write_vtu as write_vtu
 from .loads import Dirichlet as Dirichlet
+from .loads import fix as fix
 from .materials import Lame as Lame
-from .materials import lame as lame
-from .materials import reference as reference
+from .materials import neo_hookean as neo_hookean
 from .mechanics import kinematics as kinematics
-from .mechanics import potential as potential
-from .mechanics.hessians import element_hessians as element_hessians
-from .mechanics.kernels import assemble as assemble
-from .mechanics.kernels import element_forces as element_forces
 from .mechanics.kernels import energy as energy
-from .mechanics.kernels import energy_densities as energy_densities
 from .mechanics.kernels import first_piola as first_piola
 from .mechanics.kernels import forces as forces
-from .mechanics.kernels import hvp as hvp
-from .mechanics.kinematics import deformation_gradients as deformation_gradients
-from .mechanics.kinematics import polar as polar
-from .mechanics.kinematics import svd_rv as svd_rv
 from .mechanics.potential import Potential as Potential
-from .mechanics.psd import project_psd as project_psd
 from .mesh import Mesh as Mesh
 from .mesh import MeshError as MeshError
 from .mesh import box as box
@@ -53,9 +53,6 @@ from .mesh import from_arrays as from_arrays
 from .mesh import rectangle as rectangle
 from .mesh import to_quadratic as to_quadratic
 from .mesh import with_formulation as with_formulation
-from .parallel import distributed as distributed
-from .parallel import sharding as sharding
-from .parallel.sharding import Partition as Partition
 from .parallel.sharding import shard as shard
 from .solvers import AMG as AMG
 from .solvers import CG as CG
@@ -68,13 +65,14 @@ from .solvers import SolveError as SolveError
 from .solvers import Status as Status
 from .solvers import solve as solve
 from .solvers import solve_incremental as solve_incremental
-from .verification import derivative_check as crosscheck
 
 __all__ = [
+    # packages
     "contact",
     "dynamics",
     "fitting",
     "io",
+    "kinematics",
     "loads",
     "materials",
     "mechanics",
@@ -83,58 +81,93 @@ __all__ = [
     "postprocess",
     "solvers",
     "verification",
-    "benchmarks",
-    "crosscheck",
-    "distributed",
-    "kinematics",
-    "potential",
-    "reference",
-    "sharding",
-    "Integrator",
-    "read_mesh",
-    "write_vtu",
-    "Dirichlet",
-    "Lame",
-    "lame",
-    "reference",
-    "kinematics",
-    "potential",
-    "element_hessians",
-    "assemble",
-    "element_forces",
-    "energy",
-    "energy_densities",
-    "first_piola",
-    "forces",
-    "hvp",
-    "deformation_gradients",
-    "polar",
-    "svd_rv",
-    "Potential",
-    "project_psd",
+    # meshes and files
     "Mesh",
     "MeshError",
     "box",
+    "rectangle",
     "cook_membrane",
     "from_arrays",
-    "rectangle",
     "to_quadratic",
     "with_formulation",
-    "distributed",
-    "sharding",
-    "Partition",
-    "shard",
-    "AMG",
+    "read_mesh",
+    "write_vtu",
+    # materials, loads, the potential
+    "Lame",
+    "neo_hookean",
+    "fix",
+    "Dirichlet",
+    "Potential",
+    "first_piola",
+    "energy",
+    "forces",
+    # solving
+    "solve",
+    "solve_incremental",
+    "Newton",
     "CG",
     "Direct",
-    "ImplicitAdjoint",
+    "AMG",
     "Multilevel",
-    "Newton",
+    "ImplicitAdjoint",
     "Solution",
     "SolveError",
     "Status",
-    "solve",
-    "solve_incremental",
+    # dynamics, identification, devices
+    "simulate",
+    "Integrator",
+    "fit",
+    "shard",
 ]
 
 __version__ = "0.1.0"
+
+
+def _old_element_forces(psi, x, mesh, params):
+    """The former top-level ``element_forces``: the per-element energy *gradients*
+    ``+∂E_c/∂x_a`` (:func:`jaxelastic.mechanics.element_gradients`)."""
+    return mechanics.element_gradients(psi, x, mesh, params)
+
+
+_MOVED = {
+    # name: (object, what to write instead)
+    "lame": (materials.lame, "je.Lame.from_E_nu(E, nu) (or je.materials.lame for the tuple)"),
+    "project_psd": (mechanics.project_psd, "je.mechanics.project_psd"),
+    "svd_rv": (kinematics.svd_rv, "je.kinematics.svd_rv"),
+    "polar": (kinematics.polar, "je.kinematics.polar"),
+    "deformation_gradients": (
+        kinematics.deformation_gradients,
+        "je.kinematics.deformation_gradients",
+    ),
+    "assemble": (mechanics.assemble, "je.mechanics.assemble"),
+    "energy_densities": (mechanics.energy_densities, "je.mechanics.energy_densities"),
+    "hvp": (mechanics.hvp, "je.mechanics.hvp"),
+    "element_hessians": (mechanics.element_hessians, "je.mechanics.element_hessians"),
+    "element_forces": (
+        _old_element_forces,
+        "je.mechanics.element_gradients for these values (+dE/dx per element), or "
+        "je.mechanics.element_forces for -dE/dx, the sign of je.forces",
+    ),
+    "Partition": (parallel.Partition, "je.parallel.Partition"),
+    "potential": (mechanics.potential, "je.mechanics.potential"),
+    "sharding": (parallel.sharding, "je.parallel.sharding"),
+    "distributed": (parallel.distributed, "je.parallel.distributed"),
+    "reference": (materials.reference, "je.materials.reference"),
+    "benchmarks": (verification, "je.verification"),
+    "crosscheck": (verification.derivative_check, "je.verification.derivative_check"),
+}
+
+
+def __getattr__(name: str):
+    """Names that moved into their packages still resolve, with a DeprecationWarning."""
+    if name in _MOVED:
+        import warnings
+
+        obj, instead = _MOVED[name]
+        warnings.warn(
+            f"je.{name} is deprecated and will be removed: use {instead}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return obj
+    raise AttributeError(f"module 'jaxelastic' has no attribute {name!r}")

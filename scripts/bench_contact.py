@@ -56,7 +56,7 @@ def drop_body(n: int, self_contact: bool):
     """The drop scene's potential at ``6n³`` tets with its contact term, and a state
     ``x`` whose base is 0.3 d̂ above the ground (plus a small random perturbation)."""
     mesh = je.box(n, n, n, size=(0.2, 0.2, 0.2), origin=(0.0, 0.0, 0.05))
-    mu, lam = je.lame(1e5, 0.3)
+    mu, lam = je.materials.lame(1e5, 0.3)
     mass = jnp.asarray(je.loads.lumped_mass(mesh, 1000.0))
     f = jnp.asarray(je.loads.gravity_load(mesh, 1000.0, [0.0, 0.0, -9.81]))
     pot = je.Potential(

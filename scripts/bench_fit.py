@@ -124,7 +124,7 @@ def bench_solver(kind: str, mesh, bc, f_bend, x_obs, repeats: int) -> dict:
     import jax.numpy as jnp
 
     import jaxelastic as je
-    from jaxelastic.materials import Lame, lame
+    from jaxelastic.materials import Lame
     from jaxelastic.mechanics import potential as P
     from jaxelastic.solvers.linear import block_jacobi, cg
 
@@ -134,7 +134,10 @@ def bench_solver(kind: str, mesh, bc, f_bend, x_obs, repeats: int) -> dict:
 
     def pot_of(th):
         return je.Potential(
-            mesh=mesh, params=Lame(*lame(th[0], th[1])), f_ext=f_bend, psi=je.materials.neo_hookean
+            mesh=mesh,
+            params=Lame.from_E_nu(th[0], th[1]),
+            f_ext=f_bend,
+            psi=je.materials.neo_hookean,
         )
 
     def forward(th):
@@ -312,11 +315,11 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
 
     import jaxelastic as je
-    from jaxelastic.materials import Lame, lame
+    from jaxelastic.materials import Lame
 
     n = tuple(int(a) for a in args.n.split(","))
     mesh, bc, f_bend, f_stretch = problem(n)
-    params = Lame(*lame(E_TRUE, NU_TRUE))
+    params = Lame.from_E_nu(E_TRUE, NU_TRUE)
     obs = []
     for f in (f_bend, f_stretch):
         pot = je.Potential(mesh=mesh, params=params, f_ext=f, psi=je.materials.neo_hookean)

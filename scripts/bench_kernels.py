@@ -50,7 +50,7 @@ Usage::
 Element-Hessian targets (``--hessian-targets``): tet4 / tet10 / tet10 F-bar at
 about 100k cells (``--hessian-cells``), for neo-Hookean and corotated (an SVD-based model
 with custom JVPs), each row in its own subprocess so that its peak RSS is its own:
-``contracted`` (``je.element_hessians``: Kₑ = Σ_q B_qᵀ Ĉ_q B_q), ``previous`` (the former
+``contracted`` (``je.mechanics.element_hessians``: Kₑ = Σ_q B_qᵀ Ĉ_q B_q), ``previous`` (the former
 implementation: the ``"q,qkb,qabcd,qld->kalc"`` einsum for P1/P2, ``jax.hessian`` of the
 element energy over the element coordinates for F-bar; at ``--previous-cells`` where that
 is slow) and ``C_only`` (``vmap(jax.hessian(ψ))`` over all quadrature points, the share
@@ -199,23 +199,25 @@ def model_kernels(name: str, psi) -> dict:
         ks["forces_handP_cof"] = lambda x, v, m, p, perm, seg: je.forces(fast, x, m, p)
     ks.update(
         {
-            "elem_forces": lambda x, v, m, p, perm, seg: je.element_forces(psi, x, m, p),
+            "elem_forces": lambda x, v, m, p, perm, seg: je.mechanics.element_gradients(
+                psi, x, m, p
+            ),
             "elem_kernel": elem_kernel,
             "forces_gather_dense": lambda x, v, m, p, perm, seg: (
-                -gather_dense(m, je.element_forces(psi, x, m, p))
+                -gather_dense(m, je.mechanics.element_gradients(psi, x, m, p))
             ),
             "forces_scatter": lambda x, v, m, p, perm, seg: (
-                -scatter_add(m, je.element_forces(psi, x, m, p))
+                -scatter_add(m, je.mechanics.element_gradients(psi, x, m, p))
             ),
             "forces_segsum": lambda x, v, m, p, perm, seg: (
-                -segsum_sorted(m, je.element_forces(psi, x, m, p), perm, seg)
+                -segsum_sorted(m, je.mechanics.element_gradients(psi, x, m, p), perm, seg)
             ),
             "forces_jaxgrad": lambda x, v, m, p, perm, seg: (
                 -jax.grad(je.energy, argnums=1)(psi, x, m, p)
             ),
-            "hvp": lambda x, v, m, p, perm, seg: je.hvp(psi, x, v, m, p),
-            "elem_hess": lambda x, v, m, p, perm, seg: je.element_hessians(psi, x, m, p),
-            "elem_hess_psd": lambda x, v, m, p, perm, seg: je.element_hessians(
+            "hvp": lambda x, v, m, p, perm, seg: je.mechanics.hvp(psi, x, v, m, p),
+            "elem_hess": lambda x, v, m, p, perm, seg: je.mechanics.element_hessians(psi, x, m, p),
+            "elem_hess_psd": lambda x, v, m, p, perm, seg: je.mechanics.element_hessians(
                 psi, x, m, p, project=True
             ),
         }
@@ -224,7 +226,7 @@ def model_kernels(name: str, psi) -> dict:
 
 
 ASSEMBLY = {
-    "asm_incidence": lambda pe, m, perm, seg: je.assemble(m, pe),
+    "asm_incidence": lambda pe, m, perm, seg: je.mechanics.assemble(m, pe),
     "asm_gather_dense": lambda pe, m, perm, seg: gather_dense(m, pe),
     "asm_scatter": lambda pe, m, perm, seg: scatter_add(m, pe),
     "asm_segsum": lambda pe, m, perm, seg: segsum_sorted(m, pe, perm, seg),
@@ -491,13 +493,13 @@ def _previous_element_hessians(psi, x, mesh, params):
 
 def _hessian_C_only(psi, x, mesh, params):
     """``∂²ψ/∂F²`` at every quadrature point (the autodiff share of Kₑ)."""
-    F = je.deformation_gradients(x, mesh, fbar=False)
+    F = je.kinematics.deformation_gradients(x, mesh, fbar=False)
     H = jax.vmap(jax.vmap(jax.hessian(psi), in_axes=(0, None)), in_axes=(0, None))
     return H(F, params)
 
 
 HESSIAN_KERNELS = {
-    "contracted": lambda psi: lambda x, m, p: je.element_hessians(psi, x, m, p),
+    "contracted": lambda psi: lambda x, m, p: je.mechanics.element_hessians(psi, x, m, p),
     "previous": lambda psi: lambda x, m, p: _previous_element_hessians(psi, x, m, p),
     "C_only": lambda psi: lambda x, m, p: _hessian_C_only(psi, x, m, p),
 }

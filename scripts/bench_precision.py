@@ -64,7 +64,7 @@ def _kernels(b, repeat: int) -> dict:
     x = X + jnp.asarray(0.05, X.dtype) * X[:, [1, 2, 0]]  # a smooth non-trivial state
     en = jax.jit(lambda x, m, p: je.energy(psi, x, m, p))
     fo = jax.jit(lambda x, m, p: je.forces(psi, x, m, p))
-    ke = jax.jit(lambda x, m, p: je.element_hessians(psi, x, m, p))
+    ke = jax.jit(lambda x, m, p: je.mechanics.element_hessians(psi, x, m, p))
     return {
         "energy": _min_time(lambda: en(x, mesh, params), repeat),
         "forces": _min_time(lambda: fo(x, mesh, params), repeat),

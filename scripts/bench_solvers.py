@@ -257,7 +257,7 @@ def be_step_worker() -> dict:
     from jaxelastic import dynamics, loads, materials
 
     mesh = je.box(20, 3, 3, size=(2.0, 0.25, 0.25))
-    params = je.Lame(*je.lame(1e7, 0.3))
+    params = je.Lame.from_E_nu(1e7, 0.3)
     bc = loads.fix(mesh, loads.nodes_on_plane(mesh, 0, 0.0))
     mass = jnp.asarray(loads.lumped_mass(mesh, 1000.0))
     g = jnp.asarray(loads.gravity_load(mesh, 1000.0, [0, 0, -9.81]))
@@ -300,7 +300,7 @@ def parts_worker() -> dict:
     from jaxelastic.mechanics import potential as P
 
     mesh = je.box(40, 10, 10, size=(4.0, 1.0, 1.0))
-    params = je.Lame(*je.lame(1e6, 0.3))
+    params = je.Lame.from_E_nu(1e6, 0.3)
     x = mesh.points * 1.001
     g = jnp.asarray(loads.gravity_load(mesh, 1000.0, [0, 0, -9.81]))
     mass = jnp.asarray(loads.lumped_mass(mesh, 1000.0))

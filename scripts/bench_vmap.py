@@ -115,7 +115,7 @@ def run(args) -> dict:
 
     def one(v, pot, bc):
         E, nu = (1000.0, v) if args.sweep == "nu" else (v, 0.3)
-        p = M.Lame(*M.lame(jnp.asarray(E, dtype), jnp.asarray(nu, dtype)))
+        p = M.Lame.from_E_nu(jnp.asarray(E, dtype), jnp.asarray(nu, dtype))
         r = je.solve(pot.replace(params=p), bc, solver=solver, throw=False)
         return r.x, r.status, r.stats["steps"], r.stats["linear_iterations"]
 

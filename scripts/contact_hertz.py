@@ -118,7 +118,7 @@ def run(
     relative errors, the fitted exponent and constant, and the min distance."""
     a_max = float(np.sqrt(R * max(deltas)))
     mesh = graded_block(n, patch * a_max, size, order=order, grow=grow)
-    mu, lam = je.lame(E, NU)
+    mu, lam = je.materials.lame(E, NU)
     psi = dict(linear=je.materials.linear, neo_hookean=je.materials.neo_hookean)[material]
     pot = je.Potential(mesh, je.Lame(mu, lam), psi=psi)
     sphere = jc.Sphere(jnp.array([0.0, 0.0, size + R + dhat]), R)

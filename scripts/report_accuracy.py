@@ -334,7 +334,7 @@ def build_shear(k, element):
     P_fn = jax.jit(jax.vmap(lambda F: je.first_piola(b.psi)(F, b.params)))
 
     def evaluate(x):
-        F = np.asarray(je.deformation_gradients(jnp.asarray(x), m)).reshape(-1, 3, 3)
+        F = np.asarray(je.kinematics.deformation_gradients(jnp.asarray(x), m)).reshape(-1, 3, 3)
         P = np.asarray(P_fn(jnp.asarray(F)))
         sig = np.einsum("cij,ckj->cik", P, F) / np.linalg.det(F)[:, None, None]
         e1 = np.abs(P[:, 0, 1] - P12).max() / P12
@@ -358,7 +358,7 @@ def build_patch(level, element):
     exact = np.array([[ref["sxx"], ref["sxy"]], [ref["syx"], ref["syy"]]])
 
     def evaluate(x):
-        F = np.asarray(je.deformation_gradients(jnp.asarray(x), m))[:, 0]
+        F = np.asarray(je.kinematics.deformation_gradients(jnp.asarray(x), m))[:, 0]
         e = 0.5 * (F + np.swapaxes(F, 1, 2)) - np.eye(2)
         s = 2 * mu * e + lam * np.trace(e, axis1=1, axis2=2)[:, None, None] * np.eye(2)
         err = np.abs(s - exact).max() / 1333.3

@@ -205,7 +205,7 @@ def _classify_relax(mesh, psi, params, x0, o: Outcome) -> Outcome:
     e0 = float(je.energy(psi, jnp.asarray(x0), mesh, params))
     e = float(je.energy(psi, jnp.asarray(o.x), mesh, params))
     sign, misfit, misfit_q = _rigid_fit(o.x, X)
-    F = np.asarray(je.deformation_gradients(jnp.asarray(o.x), mesh)).reshape(-1, 3, 3)
+    F = np.asarray(je.kinematics.deformation_gradients(jnp.asarray(o.x), mesh)).reshape(-1, 3, 3)
     J = np.linalg.det(F)
     size = float(np.ptp(X, axis=0).max())
     if sign > 0 and misfit < 1e-3 * size and abs(e) <= 1e-8 * max(abs(e0), 1.0):
@@ -302,7 +302,7 @@ def relax_scenes(models, integrators, starts, n_steps, shapes):
     from jaxelastic import materials as M
 
     mesh = je.box(2, 2, 2)
-    params = M.Lame(*M.lame(E_RELAX, NU_RELAX))
+    params = M.Lame.from_E_nu(E_RELAX, NU_RELAX)
     X = np.asarray(mesh.points)
     rows = []
     for model in models:
@@ -340,7 +340,7 @@ def collapse_scenes(models, integrators, n_steps, shapes):
 
     X = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     mesh = je.from_arrays(X, np.array([[0, 1, 2, 3]]), "tet4")
-    params = M.Lame(*M.lame(E_RELAX, NU_RELAX))
+    params = M.Lame.from_E_nu(E_RELAX, NU_RELAX)
     rows = []
     for model in models:
         psi = M.BUILTIN[model]
@@ -375,7 +375,7 @@ def _beam(E, nu, model, n=(6, 2, 2), size=(3.0, 0.5, 0.5), rho=1000.0, dynamic=T
     from jaxelastic import materials as M
 
     mesh = je.box(*n, size=size)
-    params = M.Lame(*M.lame(E, nu))
+    params = M.Lame.from_E_nu(E, nu)
     kw = dict(mass=jnp.asarray(loads.lumped_mass(mesh, rho))) if dynamic else {}
     pot = je.Potential(
         mesh=mesh,
@@ -544,7 +544,7 @@ def twist_scenes(models, shapes, turns=1.0, increments=16):
 
     rows = []
     for model in models:
-        pot = je.Potential(mesh=mesh, params=M.Lame(*M.lame(1.0e6, 0.3)), psi=M.BUILTIN[model])
+        pot = je.Potential(mesh=mesh, params=M.Lame.from_E_nu(1.0e6, 0.3), psi=M.BUILTIN[model])
         o = _guard(_run_static, pot, bc_fn, steps=increments)
         if o.outcome == "completed":
             # the mid-section x = 2 must have turned by half the end's angle (not unwound)
@@ -585,7 +585,7 @@ def sheet_scenes(models, integrators, n_steps, shapes, h=0.02):
     for model in models:
         pot = je.Potential(
             mesh=mesh,
-            params=M.Lame(*M.lame(1.0e5, 0.3)),
+            params=M.Lame.from_E_nu(1.0e5, 0.3),
             f_ext=jnp.asarray(loads.gravity_load(mesh, 500.0, G)),
             mass=jnp.asarray(loads.lumped_mass(mesh, 500.0)),
             psi=M.BUILTIN[model],

@@ -90,7 +90,9 @@ def test_host_indefinite_status_per_backend(backend):
     X = np.asarray(mesh.points)
     fixed = np.repeat(X[:, 0] == 0.0, 3)
     host = HostLinearSolver(mesh.cells, mesh.points, fixed.reshape(-1, 3), backend=backend)
-    Ke = np.asarray(je.element_hessians(materials.neo_hookean, mesh.points, mesh, _PARAMS))
+    Ke = np.asarray(
+        je.mechanics.element_hessians(materials.neo_hookean, mesh.points, mesh, _PARAMS)
+    )
     assert host.factor(Ke, None) == SUCCESS
     assert host.last_info["backend"] == backend
     K = host.assemble(Ke)
@@ -100,7 +102,7 @@ def test_host_indefinite_status_per_backend(backend):
     assert host.factor(Ke, None) == SUCCESS
 
 
-_PARAMS = je.Lame(*je.lame(10.0, 0.3))
+_PARAMS = je.Lame.from_E_nu(10.0, 0.3)
 
 
 @pytest.mark.skipif("pardiso" not in BACKENDS, reason="pypardiso / MKL not importable")

@@ -37,8 +37,8 @@ def square():
     return je.rectangle(2, 2)  # 9 nodes, 8 triangles
 
 
-P3 = M.Lame(*je.lame(1e3, 0.3))
-P2 = M.Lame(*je.lame(1e3, 0.3, dim=2))
+P3 = M.Lame.from_E_nu(1e3, 0.3)
+P2 = M.Lame.from_E_nu(1e3, 0.3, dim=2)
 
 
 def vector_psi(F, p):
@@ -72,13 +72,17 @@ def test_forces_positions_with_extra_rows(cube):
 
 def test_hvp_direction_of_the_wrong_shape(cube):
     with pytest.raises(
-        ValueError, match=re.escape("je.hvp: v must have shape (n_nodes, dim) = (27, 3)")
+        ValueError, match=re.escape("je.mechanics.hvp: v must have shape (n_nodes, dim) = (27, 3)")
     ):
-        je.hvp(M.neo_hookean, cube.points, jnp.zeros((27, 2)), cube, P3)
+        je.mechanics.hvp(M.neo_hookean, cube.points, jnp.zeros((27, 2)), cube, P3)
 
 
 def test_element_hessians_and_densities_check_positions(square):
-    for fn in (je.element_hessians, je.energy_densities, je.element_forces):
+    for fn in (
+        je.mechanics.element_hessians,
+        je.mechanics.energy_densities,
+        je.mechanics.element_gradients,
+    ):
         with pytest.raises(ValueError, match=r"x must have shape \(n_nodes, dim\) = \(9, 2\)"):
             fn(M.linear, jnp.zeros((9, 3)), square, P2)
 
@@ -296,7 +300,7 @@ def test_float32_mesh_solves_in_float32_with_x64_enabled():
 def test_von_mises_plane_strain_uses_the_out_of_plane_stress(square):
     """Linear material, homogeneous small strain: σ_zz = ν(σ_xx + σ_yy) (plane strain)."""
     E, nu = 1000.0, 0.3
-    p = M.Lame(*je.lame(E, nu, dim=2))
+    p = M.Lame.from_E_nu(E, nu, dim=2)
     A = np.array([[1 + 2e-6, 3e-7], [-1e-7, 1 - 5e-7]])
     x = np.asarray(square.points) @ A.T
     out = cell_fields(M.linear, x, square, p)
@@ -486,10 +490,12 @@ def test_newton_settings_are_checked(kw, match):
 
 def test_assemble_checks_its_shapes(cube):
     with pytest.raises(ValueError, match=r"per_element must have shape \(48, 4, 3\)"):
-        je.assemble(cube, jnp.ones((3, 4, 3)))
+        je.mechanics.assemble(cube, jnp.ones((3, 4, 3)))
     with pytest.raises(TypeError, match="mesh must be a je.Mesh"):
-        je.assemble(jnp.ones((48, 4, 3)), cube)  # arguments swapped
-    np.testing.assert_allclose(float(je.assemble(cube, jnp.ones((48, 4, 3))).sum()), 48 * 4 * 3)
+        je.mechanics.assemble(jnp.ones((48, 4, 3)), cube)  # arguments swapped
+    np.testing.assert_allclose(
+        float(je.mechanics.assemble(cube, jnp.ones((48, 4, 3))).sum()), 48 * 4 * 3
+    )
 
 
 def test_node_indices_must_be_integers_and_loads_finite(cube):
@@ -556,4 +562,4 @@ def test_read_mesh_names_a_nan_node_by_its_file_index(tmp_path):
 def test_lame_names_a_non_numeric_argument():
     for E, nu, name in (("1e5", 0.3, "Young's modulus E"), (1e5, None, "Poisson's ratio nu")):
         with pytest.raises(TypeError, match=f"{name} must be a real number"):
-            je.lame(E, nu)
+            je.materials.lame(E, nu)

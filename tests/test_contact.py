@@ -113,7 +113,7 @@ def test_motion_translates_obstacle():
 
 def _block(n=(4, 4), size=(1.0, 1.0), origin=(0.0, 0.0), E=1e4, nu=0.3):
     mesh = je.rectangle(*n, size=size, origin=origin)
-    mu, lam = je.lame(E, nu, dim=2)
+    mu, lam = je.materials.lame(E, nu, dim=2)
     return mesh, je.Lame(mu, lam)
 
 
@@ -214,7 +214,7 @@ def test_gradients_through_contact_solve_match_central_differences():
     bottom, top = np.where(X[:, 1] < 1e-9)[0], np.where(X[:, 1] > 0.5 - 1e-9)[0]
 
     def params(E):
-        mu, lam = je.lame(E, 0.3, dim=2)
+        mu, lam = je.materials.lame(E, 0.3, dim=2)
         return je.Lame(mu, lam)
 
     pot = je.Potential(mesh, params(1e4), psi=je.materials.neo_hookean)
@@ -296,7 +296,7 @@ def _incline(mu: float, theta_deg: float = 30.0, n_steps: int = 40):
     X = np.asarray(mesh0.points) @ R.T + 0.5 * dhat * normal
     mesh = je.from_arrays(X, np.asarray(mesh0.cells))
     rho, g = 1000.0, 9.81
-    mu_, lam_ = je.lame(1e6, 0.3, dim=2)
+    mu_, lam_ = je.materials.lame(1e6, 0.3, dim=2)
     mass = jnp.asarray(je.loads.lumped_mass(mesh, rho))
     f = jnp.asarray(je.loads.gravity_load(mesh, rho, [0.0, -g]))
     pot = je.Potential(mesh, je.Lame(mu_, lam_), f_ext=f, mass=mass, psi=je.materials.neo_hookean)
@@ -377,7 +377,7 @@ def test_kappa_adaptation_rescues_an_overloaded_contact():
     κ (``stats["kappa"]``, :func:`je.solvers.solved_potential`) carries the weight."""
     dt = jnp.float32
     mesh = je.rectangle(4, 4, size=(1.0, 1.0), origin=(0.0, 5e-4), dtype=dt)
-    mu, lam = je.lame(1e4, 0.3, dim=2)
+    mu, lam = je.materials.lame(1e4, 0.3, dim=2)
     X = np.asarray(mesh.points)
     bc = je.loads.fix(mesh, np.where(np.abs(X[:, 0] - 0.5) < 1e-6)[0], components=(0,))
     f = jnp.asarray(je.loads.gravity_load(mesh, 1e6, [0.0, -1.0]), dt)
@@ -410,7 +410,7 @@ def test_backward_euler_drop_never_gains_energy():
     of any step reaches the ground (the distances of x̃ = x + hv, which the step only
     probes as a start, may be negative: that start is then rejected)."""
     mesh = je.rectangle(4, 4, size=(0.2, 0.2), origin=(0.0, 0.02))
-    mu, lam = je.lame(1e5, 0.3, dim=2)
+    mu, lam = je.materials.lame(1e5, 0.3, dim=2)
     mass = jnp.asarray(je.loads.lumped_mass(mesh, 1000.0))
     f = jnp.asarray(je.loads.gravity_load(mesh, 1000.0, [0.0, -9.81]))
     base = je.Potential(mesh, je.Lame(mu, lam), f_ext=f, mass=mass, psi=je.materials.neo_hookean)
@@ -522,13 +522,13 @@ def test_gradient_through_a_kappa_adapted_solve():
     X = np.asarray(mesh.points)
     bc = je.loads.fix(mesh, np.where(np.abs(X[:, 0] - 0.5) < 1e-9)[0], components=(0,))
     f = jnp.asarray(je.loads.gravity_load(mesh, 1e5, [0.0, -1.0]))
-    mu, lam = je.lame(1e4, 0.3, dim=2)
+    mu, lam = je.materials.lame(1e4, 0.3, dim=2)
     pot = je.Potential(mesh, je.Lame(mu, lam), f_ext=f, psi=je.materials.neo_hookean)
     pot = jc.with_contact(pot, [jc.HalfSpace(jnp.zeros(2), jnp.array([0.0, 1.0]))], dhat=1e-3)
     solver = je.Newton(rtol=1e-11, linear="cg", kappa_max_factor=100)
 
     def loss(E):
-        m, lm = je.lame(E, 0.3, dim=2)
+        m, lm = je.materials.lame(E, 0.3, dim=2)
         sol = je.solve(pot.replace(params=je.Lame(m, lm)), bc, solver=solver)
         return jnp.sum(sol.x[:, 1] ** 2), sol.stats["kappa"]
 

@@ -14,7 +14,7 @@ DIRECT = je.Newton(linear="direct")
 @pytest.fixture(scope="module")
 def beam():
     mesh = je.rectangle(16, 2, size=(4.0, 0.5))
-    params = je.Lame(*je.lame(1e4, 0.3, dim=2))
+    params = je.Lame.from_E_nu(1e4, 0.3, dim=2)
     clamp = loads.fix(mesh, loads.nodes_on_plane(mesh, 0, 0.0))
     tip = loads.facets_where(mesh, lambda X: np.isclose(X[:, 0], 4.0))
     f = jnp.asarray(loads.traction_load(mesh, tip, [0.0, -400.0]))  # large: tip folds down

@@ -290,7 +290,7 @@ def test_free_swing_bdf2_no_false_max_steps():
     floor in the stopping rule it stops with MAX_STEPS at residual 3.4e-8 after 50
     iterations with the default rtol). Linear material: one Newton step per time step."""
     mesh = je.rectangle(40, 4, size=(10.0, 1.0), origin=(0.0, -0.5), order=2)
-    params = je.Lame(*je.lame(1e6, 0.3, dim=2, plane="stress"))
+    params = je.Lame.from_E_nu(1e6, 0.3, dim=2, plane="stress")
     clamp = L.fix(mesh, L.nodes_on_plane(mesh, 0, 0.0))
     tip = L.facets_where(mesh, lambda X: np.isclose(X[:, 0], 10.0))
     f = jnp.asarray(L.traction_load(mesh, tip, [0.0, -1.0]))

@@ -1,6 +1,6 @@
 """Element Hessians by contraction and displacement-based F.
 
-``je.element_hessians`` forms Kₑ = Σ_q B_qᵀ Ĉ_q B_q (+ a rank-3 element term under
+``je.mechanics.element_hessians`` forms Kₑ = Σ_q B_qᵀ Ĉ_q B_q (+ a rank-3 element term under
 F-bar/B-bar) from C = ∂²ψ/∂F²; ``element_hessians_reference`` differentiates the element
 energy twice over the element's node coordinates with ``jax.hessian``. They must agree to
 round-off for every built-in material, element and formulation, at generic deformed states
@@ -19,7 +19,7 @@ from jaxelastic.mechanics import assemble, element_hessians_reference
 LAME = M.Lame(jnp.asarray(1.3), jnp.asarray(2.1))
 
 # jitted (ψ static): eager dispatch of the vmapped autodiff is ~5× slower on tiny meshes
-_hessians = jax.jit(je.element_hessians, static_argnums=0, static_argnames="project")
+_hessians = jax.jit(je.mechanics.element_hessians, static_argnums=0, static_argnames="project")
 _reference = jax.jit(element_hessians_reference, static_argnums=0)
 
 
@@ -154,7 +154,7 @@ def test_fbar_inverted_point_branch():
     a, b = cells[0, 0], cells[0, 1]  # local node 4 sits on the edge (0, 1)
     x[cells[0, 4]] = x[a] + 0.1 * (x[b] - x[a])  # past the quarter point: J < 0 near corner 0
     x = jnp.asarray(x)
-    Jq = np.linalg.det(np.asarray(je.deformation_gradients(x, mesh, fbar=False)))
+    Jq = np.linalg.det(np.asarray(je.kinematics.deformation_gradients(x, mesh, fbar=False)))
     w = np.asarray(mesh.weights)
     assert (Jq[0] <= 0).any() and (w[0] * Jq[0]).sum() > 0, "case must have J_q ≤ 0 < J̄"
     _check("stable_neo_hookean", mesh, x)
@@ -169,7 +169,7 @@ def test_assembled_element_hessians_match_hvp(kind):
     K = _hessians(psi, x, mesh, LAME)
     ve = v[mesh.cells].reshape(mesh.n_cells, -1)
     Kv = assemble(mesh, jnp.einsum("cij,cj->ci", K, ve).reshape(mesh.cells.shape + (-1,)))
-    Hv = jax.jit(je.hvp, static_argnums=0)(psi, x, v, mesh, LAME)
+    Hv = jax.jit(je.mechanics.hvp, static_argnums=0)(psi, x, v, mesh, LAME)
     assert _rel(Kv, Hv) <= 1e-12
 
 
@@ -244,9 +244,9 @@ def test_mesh_dtype_is_the_working_dtype():
     x64 = jnp.asarray(np.asarray(mesh.points, np.float64) * 1.01)
     p = M.Lame(jnp.float32(1.0), jnp.float32(1.5))
     assert _forces(M.neo_hookean, x64, mesh, p).dtype == jnp.float32
-    assert jax.jit(je.deformation_gradients)(x64, mesh).dtype == jnp.float32
+    assert jax.jit(je.kinematics.deformation_gradients)(x64, mesh).dtype == jnp.float32
     assert _hessians(M.neo_hookean, x64, mesh, p).dtype == jnp.float32
-    hvp = jax.jit(je.hvp, static_argnums=0)
+    hvp = jax.jit(je.mechanics.hvp, static_argnums=0)
     assert hvp(M.neo_hookean, x64, x64, mesh, p).dtype == jnp.float32
 
 

@@ -34,7 +34,7 @@ def deformed(mesh, seed=0, amp=0.1):
     X = np.asarray(mesh.points)
     A = rotation(d, 0.3) @ np.diag([1.2, 0.9, 1.05][:d])
     x = X @ A.T + amp * rng.uniform(-1, 1, X.shape)
-    J = np.linalg.det(np.asarray(je.deformation_gradients(jnp.asarray(x), mesh)))
+    J = np.linalg.det(np.asarray(je.kinematics.deformation_gradients(jnp.asarray(x), mesh)))
     assert J.min() >= 0.25
     return jnp.asarray(x)
 
@@ -76,7 +76,7 @@ def fd_kit(x, mesh, p, *, psi, h=1e-5):
     e_pm, f_pm = ef(jnp.concatenate([x[None] + h * basis, x[None] - h * basis]))
     fd_grad = ((e_pm[: n * d] - e_pm[n * d :]) / (2 * h)).reshape(n, d)
     fd_hess = -(f_pm[: n * d] - f_pm[n * d :]) / (2 * h)  # (n·d, n, d)
-    hv = jax.vmap(lambda v: je.hvp(psi, x, v, mesh, p))(basis)
+    hv = jax.vmap(lambda v: je.mechanics.hvp(psi, x, v, mesh, p))(basis)
     return fd_grad, je.forces(psi, x, mesh, p), fd_hess, hv
 
 
@@ -96,14 +96,14 @@ DENSE_MODEL = {2: M.fixed_corotated, 3: M.neo_hookean}
 @kit_jit
 def element_kit(x, mesh, p, *, psi):
     """Per-element quantities, the scatter-path gradient, and the HVP of every unit vector."""
-    Ke = je.element_hessians(psi, x, mesh, p)
-    fe = je.element_forces(psi, x, mesh, p)
-    dens = je.energy_densities(psi, x, mesh, p)
+    Ke = je.mechanics.element_hessians(psi, x, mesh, p)
+    fe = je.mechanics.element_gradients(psi, x, mesh, p)
+    dens = je.mechanics.energy_densities(psi, x, mesh, p)
     g = jax.grad(je.energy, argnums=1)(psi, x, mesh, p)  # JAX's scatter path
     n, d = x.shape
     basis = jnp.eye(n * d, dtype=x.dtype).reshape(n * d, n, d)
-    hv = jax.vmap(lambda v: je.hvp(psi, x, v, mesh, p))(basis)  # rows: H e_i
-    return Ke, fe, je.assemble(mesh, fe), dens, g, hv
+    hv = jax.vmap(lambda v: je.mechanics.hvp(psi, x, v, mesh, p))(basis)  # rows: H e_i
+    return Ke, fe, je.mechanics.assemble(mesh, fe), dens, g, hv
 
 
 @pytest.mark.parametrize("d", [2, 3])
@@ -144,7 +144,7 @@ def test_project_psd():
     A = rng.standard_normal((5, 6, 6))
     K = A + np.swapaxes(A, 1, 2)  # symmetric, indefinite
     assert np.linalg.eigvalsh(K).min() < 0
-    Kp = np.asarray(je.project_psd(jnp.asarray(K)))
+    Kp = np.asarray(je.mechanics.project_psd(jnp.asarray(K)))
     np.testing.assert_allclose(Kp, np.swapaxes(Kp, 1, 2), atol=1e-14)
     assert np.linalg.eigvalsh(Kp).min() > -1e-12
     # positive eigenpairs are kept: Kp − K is PSD-negative part only
@@ -152,9 +152,9 @@ def test_project_psd():
     np.testing.assert_allclose(Kp, np.einsum("bij,bj,bkj->bik", Q, np.maximum(w, 0), Q), atol=1e-12)
     # PSD input is returned unchanged
     B = A @ np.swapaxes(A, 1, 2)
-    np.testing.assert_allclose(je.project_psd(jnp.asarray(B)), B, atol=1e-12)
+    np.testing.assert_allclose(je.mechanics.project_psd(jnp.asarray(B)), B, atol=1e-12)
     # a floor clamps from below
-    Kf = np.asarray(je.project_psd(jnp.asarray(K), floor=0.5))
+    Kf = np.asarray(je.mechanics.project_psd(jnp.asarray(K), floor=0.5))
     assert np.linalg.eigvalsh(Kf).min() > 0.5 - 1e-12
 
 
@@ -162,7 +162,7 @@ def test_projection_matters_for_an_indefinite_configuration():
     """StVK under strong compression has indefinite element Hessians; project=True fixes it."""
     mesh = je.rectangle(2, 2)
     x = 0.3 * mesh.points
-    eh = jax.jit(je.element_hessians, static_argnums=0, static_argnames="project")
+    eh = jax.jit(je.mechanics.element_hessians, static_argnums=0, static_argnames="project")
     K = np.asarray(eh(M.stvk, x, mesh, PARAMS))
     Kp = np.asarray(eh(M.stvk, x, mesh, PARAMS, project=True))
     assert np.linalg.eigvalsh(K).min() < -1e-3 * MU
@@ -171,7 +171,7 @@ def test_projection_matters_for_an_indefinite_configuration():
     # cells whose Hessian was already PSD are left unchanged
     psd = np.linalg.eigvalsh(K).min(axis=1) >= 0
     np.testing.assert_allclose(Kp[psd], K[psd], atol=1e-12 * np.abs(K).max())
-    np.testing.assert_allclose(Kp, np.asarray(je.project_psd(jnp.asarray(K))), atol=1e-12)
+    np.testing.assert_allclose(Kp, np.asarray(je.mechanics.project_psd(jnp.asarray(K))), atol=1e-12)
 
 
 # --------------------------------------------------------------------------- patch test
@@ -199,7 +199,7 @@ def _invert_one_cell():
     """RECT with its corner node 3 = (1, 0), which belongs to one cell, folded over it."""
     x = np.asarray(RECT.points).copy()
     x[3] = [0.5, 0.5]
-    J = np.linalg.det(np.asarray(je.deformation_gradients(jnp.asarray(x), RECT)))[:, 0]
+    J = np.linalg.det(np.asarray(je.kinematics.deformation_gradients(jnp.asarray(x), RECT)))[:, 0]
     assert (J <= 0).sum() == 1
     return jnp.asarray(x)
 
@@ -230,7 +230,7 @@ def test_jit_and_vmap_composition(d):
     vs = jnp.asarray(np.random.default_rng(0).standard_normal(xs.shape))
     e_j = jax.jit(je.energy, static_argnums=0)
     f_j = jax.jit(je.forces, static_argnums=0)
-    h_j = jax.jit(je.hvp, static_argnums=0)
+    h_j = jax.jit(je.mechanics.hvp, static_argnums=0)
     e1 = np.stack([e_j(psi, x, mesh, PARAMS) for x in xs])
     f1 = np.stack([f_j(psi, x, mesh, PARAMS) for x in xs])
     h1 = np.stack([h_j(psi, x, v, mesh, PARAMS) for x, v in zip(xs, vs, strict=True)])
@@ -239,7 +239,7 @@ def test_jit_and_vmap_composition(d):
     def batched(xs, vs, mesh, p):
         e = jax.vmap(je.energy, in_axes=(None, 0, None, None))(psi, xs, mesh, p)
         f = jax.vmap(lambda x: je.forces(psi, x, mesh, p))(xs)
-        h = jax.vmap(lambda x, v: je.hvp(psi, x, v, mesh, p))(xs, vs)
+        h = jax.vmap(lambda x, v: je.mechanics.hvp(psi, x, v, mesh, p))(xs, vs)
         return e, f, h
 
     e_b, f_b, h_b = batched(xs, vs, mesh, PARAMS)

@@ -76,7 +76,7 @@ def _fbar_meshes(d):
 
 @functools.partial(jax.jit, static_argnums=0)
 def _patch_quantities(psi, x, m, p):
-    K = je.element_hessians(psi, x, m, p)
+    K = je.mechanics.element_hessians(psi, x, m, p)
     return je.forces(psi, x, m, p), je.energy(psi, x, m, p), jnp.all(jnp.isfinite(K))
 
 
@@ -155,7 +155,7 @@ def test_fbar_energy_splits_into_isochoric_and_cell_average_volumetric_parts():
     assert float(je.energy(iso, x, mf, p)) == pytest.approx(
         float(je.energy(iso, x, m, p)), rel=1e-13
     )
-    F = np.asarray(je.deformation_gradients(x, m))
+    F = np.asarray(je.kinematics.deformation_gradients(x, m))
     w = np.asarray(m.weights)
     Jbar = np.sum(w * np.linalg.det(F), axis=1) / w.sum(axis=1)
     expect = np.sum(w.sum(axis=1) * 50.0 * (Jbar - 1) ** 2)
@@ -172,10 +172,10 @@ def test_inversion_inside_a_patch_is_infinite_energy_and_seen_by_min_J():
     # the patch average J̄ stays positive
     x[inner_mid[0]] += np.array([0.4, 0.4])
     x = jnp.asarray(x)
-    Jq = np.linalg.det(np.asarray(je.deformation_gradients(x, m, fbar=False)))
+    Jq = np.linalg.det(np.asarray(je.kinematics.deformation_gradients(x, m, fbar=False)))
     assert Jq.min() < 0
     p = je.Lame(1.0, 10.0)
-    W = np.asarray(je.energy_densities(materials.neo_hookean, x, m, p))
+    W = np.asarray(je.mechanics.energy_densities(materials.neo_hookean, x, m, p))
     assert not np.isnan(W).any() and np.isinf(W).any()
     assert float(je.energy(materials.neo_hookean, x, m, p)) == np.inf
     assert np.isfinite(float(je.energy(materials.stable_neo_hookean, x, m, p)))
@@ -192,7 +192,7 @@ def test_cell_fields_use_f_bar():
     m = je.box(1, 1, 1, order=2, formulation="fbar")
     X = np.asarray(m.points)
     x = jnp.asarray(X + 0.05 * np.sin(2 * X[:, ::-1]))
-    F = np.asarray(je.deformation_gradients(x, m, fbar=False))
+    F = np.asarray(je.kinematics.deformation_gradients(x, m, fbar=False))
     w = np.asarray(m.weights)
     Jbar = np.sum(w * np.linalg.det(F), axis=1) / w.sum(axis=1)
     out = cell_fields(materials.neo_hookean, x, m, je.Lame(1.0, 2.0))

@@ -110,7 +110,7 @@ def test_grad_E_nu(beam2, beam3, dim):
     b = beam2 if dim == 2 else beam3
 
     def loss(th):
-        params = M.Lame(*M.lame(th[0], th[1], dim=dim))
+        params = M.Lame.from_E_nu(th[0], th[1], dim=dim)
         return b.tip_loss(_x(b.pot(params), b.bc))
 
     th = jnp.array([E_MOD, NU])
@@ -211,14 +211,14 @@ def test_warm_start_and_direct_solver_agree(beam2):
     b = beam2
 
     def loss(th, x0, solver):
-        params = M.Lame(*M.lame(th[0], th[1], dim=2))
+        params = M.Lame.from_E_nu(th[0], th[1], dim=2)
         return b.tip_loss(_x(b.pot(params), b.bc, solver=solver, x0=x0))
 
     th = jnp.array([E_MOD, NU])
     grad = jax.jit(jax.grad(loss), static_argnums=2)
     cg = je.Newton(rtol=1e-12, linear=je.CG())
     g_cold = grad(th, b.mesh.points, cg)
-    x_warm = _x(b.pot(M.Lame(*M.lame(1.1 * E_MOD, NU, dim=2))), b.bc)
+    x_warm = _x(b.pot(M.Lame.from_E_nu(1.1 * E_MOD, NU, dim=2)), b.bc)
     g_warm = grad(th, x_warm, cg)
     direct = je.solvers.prepare_solver(je.Newton(rtol=1e-12, linear="direct"), b.mesh, b.bc)
     g_direct = grad(th, b.mesh.points, direct)
@@ -231,11 +231,11 @@ def test_failed_solve_gives_nan_and_raises(beam2):
     bad = je.Newton(rtol=1e-12, max_steps=1)
 
     def loss(th):
-        params = M.Lame(*M.lame(th[0], th[1], dim=2))
+        params = M.Lame.from_E_nu(th[0], th[1], dim=2)
         return b.tip_loss(je.solve(b.pot(params), b.bc, solver=bad, throw=False).x)
 
     th = jnp.array([E_MOD, NU])
-    params = M.Lame(*M.lame(E_MOD, NU, dim=2))
+    params = M.Lame.from_E_nu(E_MOD, NU, dim=2)
     res = je.solve(b.pot(params), b.bc, solver=bad, throw=False)
     assert int(res.status) == Status.MAX_STEPS
     _, g = jax.jit(jax.value_and_grad(loss))(th)
@@ -672,7 +672,7 @@ def test_trajectory_case_gradient(beam2):
     """A released cantilever observed at 3 of 8 backward-Euler steps: zero loss at the truth,
     and the objective's gradient in z matches central differences."""
     b = beam2
-    params = M.Lame(*M.lame(E_MOD, NU, dim=2))
+    params = M.Lame.from_E_nu(E_MOD, NU, dim=2)
     x_bent = _x(b.pot(params), b.bc)
     mass = jnp.asarray(L.lumped_mass(b.mesh, 1.0))
     pot = b.pot(None, f=jnp.zeros_like(b.f)).replace(mass=mass)

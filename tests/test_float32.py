@@ -54,7 +54,7 @@ def readme_problem(dtype):
         return p.mu / 2 * (J ** (-2 / 3) * jnp.sum(F * F) - 3) + p.lam / 2 * (J - 1) ** 2
 
     mesh = je.box(20, 4, 4, size=(5.0, 1.0, 1.0), dtype=dtype)
-    mu, lam = je.lame(1e6, 0.3)
+    mu, lam = je.materials.lame(1e6, 0.3)
     params = je.Lame(jnp.asarray(mu, dtype), jnp.asarray(lam, dtype))
     clamp = L.fix(mesh, L.nodes_on_plane(mesh, 0, 0.0))
     g = L.gravity_load(mesh, density=1000.0, g=[0, 0, -9.81])
@@ -216,7 +216,7 @@ def test_float64_stiff_block_stops_with_success_at_the_floor(psi):
     must stop there with SUCCESS (a non-quadratic ψ: once a full step stalls), report the
     floor, and give the answer a tight solve gives."""
     mesh = je.box(6, 2, 2, size=(3.0, 0.5, 0.5))
-    params = je.Lame(*je.lame(210e9, 0.3))
+    params = je.Lame.from_E_nu(210e9, 0.3)
     clamp = L.fix(mesh, L.nodes_on_plane(mesh, 0, 0.0))
     end = L.facets_where(mesh, lambda X: np.isclose(X[:, 0], 3.0))
     f = jnp.asarray(L.traction_load(mesh, end, [0.0, 0.0, -1e4]))

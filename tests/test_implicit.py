@@ -89,7 +89,7 @@ def host_beam():
 
 
 def _lame(E, nu=NU):
-    return M.Lame(*M.lame(E, nu, dim=2))
+    return M.Lame.from_E_nu(E, nu, dim=2)
 
 
 # ---------------------------------------------------------------------------- forward mode
@@ -242,7 +242,7 @@ def test_vmap_over_materials_cg_and_host_refusal(beam):
     """jax.vmap of je.solve over two (μ, λ) sets with linear="cg" gives the two separate
     solves; host solvers under vmap raise a ValueError that says so."""
     E = jnp.array([E_MOD, 2.5 * E_MOD])
-    params = M.Lame(*M.lame(E, jnp.array([0.3, 0.4]), dim=2))
+    params = M.Lame.from_E_nu(E, jnp.array([0.3, 0.4]), dim=2)
 
     def x_of(p, linear):
         return je.solve(beam.pot(p), beam.bc, solver=TIGHT.replace(linear=linear)).x

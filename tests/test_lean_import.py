@@ -42,7 +42,7 @@ at_import = list(ATTEMPTS)
 mesh = je.rectangle(8, 2, (4.0, 1.0))
 bc = loads.fix(mesh, loads.nodes_on_plane(mesh, 0, 0.0))
 f = jnp.zeros_like(mesh.points).at[loads.nodes_on_plane(mesh, 0, 4.0), 1].set(-0.01)
-pot = je.Potential(mesh=mesh, params=M.Lame(*M.lame(100.0, 0.3, dim=2)), f_ext=f,
+pot = je.Potential(mesh=mesh, params=M.Lame.from_E_nu(100.0, 0.3, dim=2), f_ext=f,
                    psi=M.neo_hookean)
 tight = je.Newton(rtol=1e-12)
 x_cg = je.solve(pot, bc, solver=tight.replace(linear=je.CG())).x

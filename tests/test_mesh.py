@@ -75,7 +75,7 @@ def test_dm_inv_consistent_with_points(name):
     # shape-function gradients sum to zero (partition of unity) and reproduce F = I at rest
     dN = np.asarray(m.dN)
     np.testing.assert_allclose(dN.sum(axis=2), 0.0, atol=1e-12)
-    F = np.asarray(jax.jit(je.deformation_gradients)(m.points, m))
+    F = np.asarray(jax.jit(je.kinematics.deformation_gradients)(m.points, m))
     np.testing.assert_allclose(F, np.broadcast_to(np.eye(m.dim), F.shape), atol=1e-12)
 
 
@@ -102,7 +102,9 @@ def test_incidence_reproduces_scatter_add(name):
     per_el = jnp.asarray(rng.standard_normal((m.n_cells, m.dim + 1, m.dim)))
     scatter = jax.jit(lambda m, pe: jnp.zeros((m.n_nodes, m.dim)).at[m.cells].add(pe))
     expected = scatter(m, per_el)
-    np.testing.assert_allclose(jax.jit(je.assemble)(m, per_el), expected, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        jax.jit(je.mechanics.assemble)(m, per_el), expected, rtol=1e-12, atol=1e-12
+    )
     # every (cell, local node) slot appears exactly once in the incidence table
     inc = np.asarray(m.incidence)
     slots = inc[inc < m.n_cells * (m.dim + 1)]

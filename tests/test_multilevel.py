@@ -27,7 +27,7 @@ def _beam(dtype=np.float64):
 
 
 def _pot(mesh, f, E, nu=0.3):
-    p = M.Lame(*M.lame(E, nu, dim=2))
+    p = M.Lame.from_E_nu(E, nu, dim=2)
     return je.Potential(mesh=mesh, params=p, f_ext=f, psi=M.neo_hookean)
 
 
@@ -200,8 +200,8 @@ def test_projected_upper_by_blocks(beam, monkeypatch):
     mesh, bc, f = beam
     pot = _pot(mesh, f, 1e3)
     host = je.solvers.init_linear("direct", mesh, bc)[1].host
-    K_in = je.element_hessians(pot.psi, _compressed_start(mesh, bc), mesh, pot.params)
-    K_rest = je.element_hessians(pot.psi, mesh.points, mesh, pot.params)
+    K_in = je.mechanics.element_hessians(pot.psi, _compressed_start(mesh, bc), mesh, pot.params)
+    K_rest = je.mechanics.element_hessians(pot.psi, mesh.points, mesh, pot.params)
     half = np.arange(mesh.n_cells) < mesh.n_cells // 2  # PSD cells and indefinite ones
     Ke = jnp.where(half[:, None, None], K_rest, K_in)
     emap = jnp.asarray(host.element_map)

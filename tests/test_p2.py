@@ -62,7 +62,9 @@ def linear_solve(psi, mesh, params, bc, f_ext=None):
     solve with the assembled element Hessians at rest: returns positions ``(n, d)``."""
     X = np.asarray(mesh.points)
     n, d = X.shape
-    Ke = np.asarray(jax.jit(je.element_hessians, static_argnums=0)(psi, mesh.points, mesh, params))
+    Ke = np.asarray(
+        jax.jit(je.mechanics.element_hessians, static_argnums=0)(psi, mesh.points, mesh, params)
+    )
     dofs = (np.asarray(mesh.cells)[:, :, None] * d + np.arange(d)).reshape(mesh.n_cells, -1)
     k = dofs.shape[1]
     K = sp.csr_matrix(
@@ -358,7 +360,12 @@ def check_derivatives(psi, x, v, m, p):
     h = 1e-6
     E, f_of, hvp_of, K_of = (
         jax.jit(fn, static_argnums=0)
-        for fn in (je.energy, je.forces, lambda s, y, *a: je.hvp(s, y, *a), je.element_hessians)
+        for fn in (
+            je.energy,
+            je.forces,
+            lambda s, y, *a: je.mechanics.hvp(s, y, *a),
+            je.mechanics.element_hessians,
+        )
     )
     f = f_of(psi, x, m, p)
     fd = (E(psi, x + h * v, m, p) - E(psi, x - h * v, m, p)) / (2 * h)
@@ -369,7 +376,7 @@ def check_derivatives(psi, x, v, m, p):
     K = K_of(psi, x, m, p)
     np.testing.assert_allclose(K, jnp.swapaxes(K, 1, 2), atol=1e-12 * float(jnp.abs(K).max()))
     ve = v[m.cells].reshape(m.n_cells, -1)
-    Kv = je.assemble(m, jnp.einsum("cij,cj->ci", K, ve).reshape(m.cells.shape + (m.dim,)))
+    Kv = je.mechanics.assemble(m, jnp.einsum("cij,cj->ci", K, ve).reshape(m.cells.shape + (m.dim,)))
     np.testing.assert_allclose(Kv, Hv, atol=1e-12 * float(jnp.abs(Hv).max()))
 
 
@@ -438,7 +445,7 @@ def _errors_p2(mesh, x, exact, C):
 def test_p2_convergence_rates_timoshenko():
     """P2 on the Timoshenko cantilever with the exact field on the whole boundary:
     L2 error ∝ h³, energy-norm error ∝ h² (± 0.2)."""
-    mu, lam = je.lame(3e7, 0.3, dim=2, plane="stress")
+    mu, lam = je.materials.lame(3e7, 0.3, dim=2, plane="stress")
     p = je.Lame(mu, lam)
     C = np.einsum("ij,kl->ijkl", np.eye(2), np.eye(2)) * lam + mu * (
         np.einsum("ik,jl->ijkl", np.eye(2), np.eye(2))
@@ -469,7 +476,7 @@ def _cantilever3d(m_depth, **kw):
     fac = L.facets_where(m, lambda X: np.abs(X[:, 0] - Lb) < 1e-9)
     f = L.traction_load(m, fac, [0.0, 0.0, -P / A])
     bc = L.fix(m, L.nodes_on_plane(m, 0, 0.0))
-    x = linear_solve(materials.linear, m, je.Lame(*je.lame(E, nu)), bc, f)
+    x = linear_solve(materials.linear, m, je.Lame.from_E_nu(E, nu), bc, f)
     end = L.nodes_on_plane(m, 0, Lb)
     return -float(np.mean(x[end, 2] - np.asarray(m.points)[end, 2])) / delta
 
@@ -524,7 +531,7 @@ def test_write_vtu_p2_cell_fields_are_quadrature_averages(tmp_path, dim):
     write_vtu(path, m, x, psi=psi, params=p)
     back = meshio.read(path)
     assert back.cells[0].type == ("triangle6" if dim == 2 else "tetra10")
-    F = np.asarray(je.deformation_gradients(jnp.asarray(x), m))
+    F = np.asarray(je.kinematics.deformation_gradients(jnp.asarray(x), m))
     w = np.asarray(m.weights)
     J_avg = np.sum(w * np.linalg.det(F), axis=1) / w.sum(axis=1)
     np.testing.assert_allclose(back.cell_data["J"][0], J_avg, rtol=1e-12)

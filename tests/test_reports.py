@@ -78,7 +78,7 @@ def test_timoshenko_exact_field_and_error_norms():
     m = je.rectangle(16, 4, (48.0, 12.0), (0.0, -6.0))
     X = np.asarray(m.points)
     ue = bm.timoshenko_exact(X)[0]
-    mu, lam = je.lame(3e7, 0.3, dim=2, plane="stress")
+    mu, lam = je.materials.lame(3e7, 0.3, dim=2, plane="stress")
     exact = (lambda Z: bm.timoshenko_exact(Z)[0], lambda Z: bm.timoshenko_exact(Z)[1])
     l2, en = acc.error_norms_2d(m, X + 0.5 * ue, *exact, mu, lam)
     # half the interpolant: errors near 1/2 (plus the interpolation error)

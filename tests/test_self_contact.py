@@ -326,7 +326,7 @@ def _two_blocks_3d(gap=0.05, n=3):
 
 
 def _pot(mesh, E=1e4):
-    mu, lam = je.lame(E, 0.3, dim=mesh.dim)
+    mu, lam = je.materials.lame(E, 0.3, dim=mesh.dim)
     return je.Potential(mesh, je.Lame(mu, lam), psi=je.materials.neo_hookean)
 
 
@@ -494,7 +494,7 @@ def _twisted_bar(n: int = 16):
         return je.Dirichlet(mask=jnp.asarray(mask), values=jnp.asarray(V))
 
     g = je.loads.gravity_load(mesh, 1000.0, [0.0, 0.0, -9.81])
-    mu, lam = je.lame(1e5, 0.3)
+    mu, lam = je.materials.lame(1e5, 0.3)
     pot = je.Potential(mesh, je.Lame(mu, lam), psi=je.materials.neo_hookean, f_ext=jnp.asarray(g))
     return mesh, pot, path
 

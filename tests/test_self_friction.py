@@ -236,7 +236,7 @@ def _press_and_shear(dim, mu, press=0.03, shear=0.02, gap=0.01, steps=4):
         return je.Dirichlet(mask=mask, values=jnp.asarray(v))
 
     E, nu = 1e4, 0.3
-    lmu, lam = je.lame(E, nu, dim=dim)
+    lmu, lam = je.materials.lame(E, nu, dim=dim)
     pot = je.Potential(mesh, je.Lame(lmu, lam), psi=je.materials.neo_hookean)
     pot = jc.with_contact(pot, self_contact=True, self_friction=mu)
     xs = {}
@@ -293,7 +293,7 @@ def test_contact_hook_and_refresh():
     split (node blocks in Ke + coupling) include it; a broad phase re-run keeps the lagged
     pairs; ``make_contact`` checks that self-contact is on."""
     mesh, upper, _, _ = _stacked(2, 0.01)
-    lmu, lam = je.lame(1e4, 0.3, dim=2)
+    lmu, lam = je.materials.lame(1e4, 0.3, dim=2)
     pot = je.Potential(mesh, je.Lame(lmu, lam), psi=je.materials.neo_hookean)
     ground = jc.HalfSpace(jnp.array([0.0, -1.0]), jnp.array([0.0, 1.0]))
     with pytest.raises(ValueError, match="needs self_contact=True"):
@@ -372,7 +372,7 @@ def _slide_2d(mu, v0=0.5, n_steps=12, h=0.01):
     mesh = je.from_arrays(P, C)
     upper = np.arange(P.shape[0]) >= na
     rho, g = 1000.0, 9.81
-    lmu, lam = je.lame(1e6, 0.3, dim=2)
+    lmu, lam = je.materials.lame(1e6, 0.3, dim=2)
     mass = jnp.asarray(je.loads.lumped_mass(mesh, rho))
     f = jnp.asarray(je.loads.gravity_load(mesh, rho, [0.0, -g]))
     pot = je.Potential(mesh, je.Lame(lmu, lam), f_ext=f, mass=mass, psi=je.materials.neo_hookean)

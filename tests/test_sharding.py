@@ -115,11 +115,11 @@ def test_halo_gather_scatter_against_dense(tw):
 @jax.jit
 def _kernels(pot, x, v):
     psi, mesh, p = pot.psi, pot.mesh, pot.params
-    Ke = je.element_hessians(psi, x, mesh, p)
+    Ke = je.mechanics.element_hessians(psi, x, mesh, p)
     return dict(
         energy=je.energy(psi, x, mesh, p),
         forces=je.forces(psi, x, mesh, p),
-        hvp=je.hvp(psi, x, v, mesh, p),
+        hvp=je.mechanics.hvp(psi, x, v, mesh, p),
         Ke=Ke,
         blocks=pm.node_hessian_blocks(pot, Ke),
         ehvp=pm.element_hessian_vp(pot, Ke, v),
@@ -169,7 +169,7 @@ def test_kernels_exchange_interface_only(tw):
     all-gather of node vectors."""
     b, pot_s, _, part = tw
     x, v = pot_s.mesh.points, pot_s.mesh.points
-    f = jax.jit(lambda x, v: je.hvp(b.pot.psi, x, v, pot_s.mesh, pot_s.params))
+    f = jax.jit(lambda x, v: je.mechanics.hvp(b.pot.psi, x, v, pot_s.mesh, pot_s.params))
     hlo = f.lower(x, v).compile().as_text()
     assert "collective-permute" in hlo
     assert "all-gather" not in hlo and "all-reduce" not in hlo
@@ -205,7 +205,7 @@ def _loss_and_grad(pot, bc, to_nat, to_pad_cells, w):
     solver = _SOLVER
 
     def loss(E, field):
-        mu, lam = je.lame(E, 0.3)
+        mu, lam = je.materials.lame(E, 0.3)
         p = Lame(mu * to_pad_cells(field), lam)
         x = je.solve(pot.replace(params=p), bc, solver=solver).x
         return jnp.sum(w * to_nat(x)), x
@@ -237,7 +237,7 @@ def test_dynamic_step_matches_one_device():
     mesh = je.box(3, 2, 2)  # 72 tets: 18 per shard
     mass = jnp.asarray(loads.lumped_mass(mesh, 1.0))
     g = jnp.asarray(loads.gravity_load(mesh, 1.0, (0.0, 0.0, -9.81)))
-    mu, lam = je.lame(50.0, 0.3)
+    mu, lam = je.materials.lame(50.0, 0.3)
     pot = je.Potential(
         mesh=mesh, params=Lame(mu, lam), f_ext=g, mass=mass, psi=je.materials.neo_hookean
     )

@@ -52,7 +52,7 @@ class Strip:
     def scene(self, th):
         """``(pot, bc)`` of one θ = (E, ν, δ, s) (traceable)."""
         E, nu, delta, s = th[0], th[1], th[2], th[3]
-        pot = self.pot0.replace(params=M.Lame(*M.lame(E, nu, dim=2)), f_ext=s * self.f0)
+        pot = self.pot0.replace(params=M.Lame.from_E_nu(E, nu, dim=2), f_ext=s * self.f0)
         shift = jnp.zeros_like(self.mesh.points).at[self.right, 1].set(delta)
         bc = self.bc0._replace(values=self.bc0.values + shift)
         return pot, bc

@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..materials import Lame, lame
+from ..materials import Lame
 from .parameters import Parametrization, make_parametrization
 from .transforms import Bounded, Fixed, Positive
 
@@ -48,7 +48,7 @@ class LameOf:
     plane: str = "strain"
 
     def __call__(self, m: Material) -> Lame:
-        return Lame(*lame(m.E, m.nu, dim=self.dim, plane=self.plane))
+        return Lame.from_E_nu(m.E, m.nu, dim=self.dim, plane=self.plane)
 
 
 def material_parametrization(

@@ -27,6 +27,16 @@ class Lame(NamedTuple):
     mu: jax.Array | float
     lam: jax.Array | float
 
+    @classmethod
+    def from_E_nu(cls, E, nu, dim: int = 3, plane: str = "strain") -> Lame:
+        """Lamé parameters from Young's modulus E [Pa] and Poisson's ratio ν
+        (:func:`lame`: 3D and plane strain, or ``plane="stress"`` in 2D); traceable and
+        differentiable in E and ν, validated where concrete.
+
+        Example: ``je.Lame.from_E_nu(1e6, 0.3)``; ``je.Lame.from_E_nu(1e4, 0.3, dim=2)``.
+        """
+        return cls(*lame(E, nu, dim=dim, plane=plane))
+
 
 LAME_RATIO_MAX = 1e12
 """The largest λ/μ :func:`check_lame` accepts: ν = 0.5 − 5·10⁻¹³, beyond which float64
@@ -61,12 +71,12 @@ def check_lame(params: Lame, dim: int) -> None:
     if (bad := mu <= 0).any():
         raise ValueError(
             f"shear modulus mu must be > 0{where(bad)}, got {mu.ravel()[bad.ravel()][0]!r}: "
-            "build the parameters with je.Lame(*je.lame(E, nu))"
+            "build the parameters with je.Lame.from_E_nu(E, nu)"
         )
     if (bad := lam + 2.0 * mu / dim <= 0).any():
         raise ValueError(
             f"the bulk modulus lam + 2 mu / {dim} must be > 0{where(bad)} (Poisson's ratio "
-            "above -1): build the parameters with je.Lame(*je.lame(E, nu))"
+            "above -1): build the parameters with je.Lame.from_E_nu(E, nu)"
         )
     if (bad := lam > LAME_RATIO_MAX * mu).any():
         raise ValueError(

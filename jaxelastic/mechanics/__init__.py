@@ -28,6 +28,7 @@ from .hessians import element_hessians_reference as element_hessians_reference
 from .kernels import assemble as assemble
 from .kernels import element_forces as element_forces
 from .kernels import element_gradient_kernel as element_gradient_kernel
+from .kernels import element_gradients as element_gradients
 from .kernels import energy as energy
 from .kernels import energy_densities as energy_densities
 from .kernels import first_piola as first_piola
@@ -51,6 +52,7 @@ __all__ = [
     "element_hessians_reference",
     "assemble",
     "element_forces",
+    "element_gradients",
     "element_gradient_kernel",
     "energy",
     "energy_densities",

@@ -211,7 +211,7 @@ def check_psi(
         raise TypeError(
             f"{where}: ψ {psi_name(psi)!r} could not read its parameters "
             f"({type(e).__name__}: {e}); they were a {type(params).__name__}. The built-in "
-            "models take je.Lame(mu, lam) (e.g. je.Lame(*je.lame(E, nu))); a user ψ gets "
+            "models take je.Lame(mu, lam) (e.g. je.Lame.from_E_nu(E, nu)); a user ψ gets "
             "exactly the pytree given as params"
         ) from e
     except Exception:

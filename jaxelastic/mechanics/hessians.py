@@ -322,7 +322,7 @@ def element_hessians(psi: Psi, x: jax.Array, mesh, params, *, project: bool = Fa
 
     Other args as :func:`~jaxelastic.mechanics.kernels.energy_densities`.
     """
-    check_call("je.element_hessians", psi, x, mesh, params)
+    check_call("je.mechanics.element_hessians", psi, x, mesh, params)
     if mesh.halo is not None:
         return _sharded_element_hessians(psi, x, mesh, params, project)
     ue = displacements(x, mesh)[mesh.cells]

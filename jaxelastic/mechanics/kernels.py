@@ -48,6 +48,7 @@ __all__ = [
     "forces",
     "hvp",
     "element_forces",
+    "element_gradients",
     "element_gradient_kernel",
     "assemble",
     "cell_F",
@@ -75,14 +76,14 @@ def energy_densities(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
         params: material parameter pytree (shared scalars or per-cell leaves).
 
     Raises (here and in :func:`energy`, :func:`forces`, :func:`hvp`,
-    :func:`element_forces`, :func:`~jaxelastic.mechanics.hessians.element_hessians`; all
+    :func:`element_gradients`, :func:`~jaxelastic.mechanics.hessians.element_hessians`; all
     checks happen before tracing):
         TypeError: ``mesh`` is not a mesh, or ψ does not return a scalar float.
         ValueError: ``x`` (or ``v``) is not ``(n_nodes, dim)``, a parameter leaf is neither
             a scalar nor per-cell, or, outside any transformation only, ``x``/``params``
             hold NaN/inf. Inside ``jax.jit`` non-finite input is not checked: it gives NaN.
     """
-    check_call("je.energy_densities", psi, x, mesh, params)
+    check_call("je.mechanics.energy_densities", psi, x, mesh, params)
     return _energy_densities(psi, x, mesh, params)
 
 
@@ -179,7 +180,7 @@ def element_gradient_kernel(psi, fbar: str | None = None):
     ∂E_e/∂x_e (k, d)`` of ψ, with ``ue`` the element's nodal *displacements* ``x_e − X_e``
     (autodiff P at ``F = I + Σ u_k ⊗ ∇N_k``, contracted with the shape-function gradients;
     with ``fbar="fbar"``/``"bbar"`` the gradient of the F̄ element energy). Unbatched: vmap
-    it over cells (as :func:`element_forces` does)."""
+    it over cells (as :func:`element_gradients` does)."""
     if fbar:
         return jax.grad(_fbar_element_energy(psi, fbar))
     P = first_piola(psi)
@@ -193,17 +194,23 @@ def element_gradient_kernel(psi, fbar: str | None = None):
     return fe
 
 
-def element_forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
-    """Per-element energy gradients ``∂E_c/∂x_a = Σ_q w P·∇N_a``, ``(n_cells, k, d)``.
-
-    (Element *forces* are the negatives; this is the quantity that gets assembled.)
-    Args as :func:`energy_densities`.
+def element_gradients(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
+    """Per-element energy gradients ``∂E_c/∂x_a = Σ_q w P·∇N_a``, ``(n_cells, k, d)`` [force]:
+    the quantity that :func:`assemble` sums into ∇E. Args as :func:`energy_densities`.
     """
-    check_call("je.element_forces", psi, x, mesh, params)
-    return _element_forces(psi, x, mesh, params)
+    check_call("je.mechanics.element_gradients", psi, x, mesh, params)
+    return _element_gradients(psi, x, mesh, params)
 
 
-def _element_forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
+def element_forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
+    """Per-element internal forces ``−∂E_c/∂x_a``, ``(n_cells, k, d)`` [force]: the sign
+    of :func:`forces` (``forces = assemble(mesh, element_forces(...))``). Args as
+    :func:`energy_densities`."""
+    check_call("je.mechanics.element_forces", psi, x, mesh, params)
+    return -_element_gradients(psi, x, mesh, params)
+
+
+def _element_gradients(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     ue = displacements(x, mesh)[mesh.cells]
     fe = element_gradient_kernel(psi, fbar_form(mesh))
     return per_cell(fe, params, mesh.n_cells)(ue, mesh.dN, mesh.weights, params)
@@ -252,7 +259,7 @@ def forces(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     check_call("je.forces", psi, x, mesh, params)
     if mesh.halo is not None:
         return _sharded_nodal(forces, psi, x, mesh, params)
-    return -assemble(mesh, _element_forces(psi, x, mesh, params))
+    return -assemble(mesh, _element_gradients(psi, x, mesh, params))
 
 
 def _element_hvp(psi, fbar: str | None = None):
@@ -282,7 +289,7 @@ def hvp(psi: Psi, x: jax.Array, v: jax.Array, mesh, params) -> jax.Array:
     ``v``: ``(n_nodes, d)`` direction [length], cast to the mesh's dtype; other args as
     :func:`energy_densities`.
     """
-    check_call("je.hvp", psi, x, mesh, params, v=v)
+    check_call("je.mechanics.hvp", psi, x, mesh, params, v=v)
     if mesh.halo is not None:
         return _sharded_nodal(hvp, psi, x, mesh, params, v)
     dtype = mesh.points.dtype

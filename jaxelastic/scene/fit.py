@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import fitting
-from ..materials import Lame, lame
+from ..materials import Lame
 from ..solvers import GradientError, SolveError
 from . import interrupt, memory
 from .build import Built, build, newton_of
@@ -160,7 +160,7 @@ def _with_truth(bt: Built, truth: dict, labels, n_reg: int) -> Built:
     if labels is not None:
         E_t, nu_t = _per_region(E_t, n_reg)[labels], _per_region(nu_t, n_reg)[labels]
     plane = bt.scene.spec.material.plane or "strain"
-    p = Lame(*lame(jnp.asarray(E_t), jnp.asarray(nu_t), dim=bt.mesh.dim, plane=plane))
+    p = Lame.from_E_nu(jnp.asarray(E_t), jnp.asarray(nu_t), dim=bt.mesh.dim, plane=plane)
     return bt._replace(params=p, potential=bt.potential.replace(params=p))
 
 

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import loads
-from ..materials import Lame, lame, linear, neo_hookean
+from ..materials import Lame, linear, neo_hookean
 from ..mechanics.potential import Potential
 from ..mesh import cook_membrane
 from .problem import Benchmark, node_at
@@ -65,7 +65,7 @@ def _cook(name, n, mesh_kw, *, psi, params, total, point, ref, citation, steps=0
 def cook_linear(n: int, **mesh_kw) -> Benchmark:
     """Linear plane-stress Cook's membrane (E = 1, ν = 1/3, total shear 1) on an ``n × n``
     mesh; reference u_y(48, 52) = 23.96. ``n`` even for P1 (the probe must be a node)."""
-    p = Lame(*lame(1.0, 1.0 / 3.0, dim=2, plane="stress"))
+    p = Lame.from_E_nu(1.0, 1.0 / 3.0, dim=2, plane="stress")
     return _cook(
         "cook",
         n,

@@ -362,7 +362,7 @@ def crosscheck(dims=(2, 3), models=None, params: Lame | None = None) -> list[dic
     if unknown:
         raise ValueError(f"unknown model(s) {unknown}; available: {list(MODELS)}")
     if params is None:
-        params = Lame(*materials.lame(1e5, 0.3))
+        params = Lame.from_E_nu(1e5, 0.3)
     params = Lame(jnp.asarray(params.mu, jnp.float64), jnp.asarray(params.lam, jnp.float64))
     rows: list[dict] = []
     for model in models:

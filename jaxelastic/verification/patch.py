@@ -92,7 +92,7 @@ def affine_patch(model: str) -> Benchmark:
         g = np.broadcast_to(PATCH_F0 - np.eye(2), (X.shape[0], 2, 2))
         return X @ PATCH_F0.T + PATCH_C - X, g.copy()
 
-    pot = Potential(mesh=m, params=Lame(*lame(1.0e6, 0.25, dim=2)), psi=BUILTIN[model])
+    pot = Potential(mesh=m, params=Lame.from_E_nu(1.0e6, 0.25, dim=2), psi=BUILTIN[model])
     return Benchmark(
         name=f"patch_affine[{model}]",
         pot=pot,
