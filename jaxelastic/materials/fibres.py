@@ -93,9 +93,18 @@ def fibre_strain(F3: jax.Array, J, a0, kappa, I1b):
     return kappa * (I1b - 3.0) + (1.0 - 3.0 * kappa) * (I4b - 1.0)
 
 
+FIBRE_STRAIN_FLOOR = 16
+"""A fibre strain ``Ē`` below this many ulps of 1 counts as unstretched: at F = I the unit
+direction's rounding leaves ``Ī₄ − 1`` at ±1 ulp, which would switch the tension-only
+fibres on (their tangent jumps by 2k1 at Ē = 0); the cut changes ψ by at most
+``k1/2·(16 eps)²``, far below ψ's own round-off."""
+
+
 def _fibre_energy(E, k1, k2):
-    """``k1/(2k2) (exp(k2 ⟨E⟩²) − 1)`` with the Macaulay bracket ⟨E⟩ = max(E, 0)."""
-    Ep = jnp.where(E > 0, E, 0.0)
+    """``k1/(2k2) (exp(k2 ⟨E⟩²) − 1)`` with the Macaulay bracket ⟨E⟩ = max(E, 0)
+    (``Ē`` within :data:`FIBRE_STRAIN_FLOOR` ulps of 0 counts as 0)."""
+    tol = FIBRE_STRAIN_FLOOR * jnp.finfo(jnp.result_type(E)).eps
+    Ep = jnp.where(E > tol, E, 0.0)
     return 0.5 * k1 / k2 * jnp.expm1(k2 * Ep * Ep)
 
 
