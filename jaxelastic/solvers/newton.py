@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ..contact.barrier import kappa_update
+from ..contact.log_barrier import kappa_update
 from ..loads import Dirichlet
 from ..mechanics import potential as pot_mod
 from ..mechanics.fusion import always, computed
