@@ -2,4 +2,6 @@
 
 from .cli import command
 
+__all__: list[str] = []
+
 command()

@@ -20,7 +20,7 @@ Galerkin refresh) and the solve to ``--rtol``, with the peak resident memory of 
 times AMG hierarchy reuse over a sequence of five matrices along a twisting path. Prints a
 table and writes ``bench_linear.json`` (atomically) to ``--out``.
 
-The library's only Krylov loop is the device CG (``jaxelastic.solvers.linear.cg``); the
+The library's only Krylov loop is the device CG (``jaxelastic.solvers.linear.krylov``); the
 host back ends only factorise and apply. To time the host side alone, this measurement
 script has its own small NumPy PCG (:func:`pcg`): the AMG rows run it with one V-cycle
 (``HostLinearSolver.apply``) per iteration, the ``cg-jacobi`` baseline with the inverse

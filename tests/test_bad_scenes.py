@@ -40,7 +40,7 @@ from jaxelastic.scene.outputs import remove_temporaries
 from jaxelastic.scene.run import settle_ratio
 
 # the modules (the package re-exports functions of the same names)
-build_mod = importlib.import_module("jaxelastic.scene.build")
+build_mod = importlib.import_module("jaxelastic.scene.problem")
 run_mod = importlib.import_module("jaxelastic.scene.run")
 
 TINY = TINY_SCENE

@@ -360,7 +360,7 @@ def test_drop_scene_bounces_and_comes_to_rest(tmp_path):
 
 # ------------------------------------------------------------- κ adaptation in a solve
 def test_kappa_update_rule():
-    from jaxelastic.contact.barrier import kappa_update as up
+    from jaxelastic.contact.log_barrier import kappa_update as up
 
     k, kmax, dh = jnp.asarray(1.0), jnp.asarray(8.0), 1.0
     assert float(up(k, kmax, 1e-3, 2e-3, dh)) == 2.0  # below 1e-2·d̂ and closing

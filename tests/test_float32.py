@@ -20,7 +20,7 @@ from jaxelastic import dynamics
 from jaxelastic import loads as L
 from jaxelastic import materials as M
 from jaxelastic.scene import SceneError, load_scene
-from jaxelastic.scene.build import build, linear_solver_name
+from jaxelastic.scene.problem import build, linear_solver_name
 from jaxelastic.scene.run import run_scene
 from jaxelastic.verification import torsion as twist
 

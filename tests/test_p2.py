@@ -543,7 +543,7 @@ def test_write_vtu_p2_cell_fields_are_quadrature_averages(tmp_path, dim):
 
 
 def test_scene_lifts_p1_file_sets_to_p2():
-    from jaxelastic.scene.build import lift_file_mesh
+    from jaxelastic.scene.problem import lift_file_mesh
 
     p1 = je.rectangle(2, 1, size=(2.0, 1.0))
     X = np.asarray(p1.points)

@@ -592,7 +592,7 @@ def test_committed_reference_is_the_generated_one():
 
 
 def test_solver_defaults_are_newtons():
-    from jaxelastic.scene.build import newton_of
+    from jaxelastic.scene.problem import newton_of
     from jaxelastic.scene.schema import SolverSpec
 
     n, spec = je.Newton(), SolverSpec()

@@ -57,8 +57,8 @@ def test_too_many_devices_names_the_xla_flag():
 
 @pytest.mark.skipif(len(jax.devices()) < 2, reason="needs 2 devices (tests/conftest.py)")
 def test_build_shards_the_scene_and_the_header_records_it(tmp_path):
-    from jaxelastic.scene.build import padded_dirichlet
     from jaxelastic.scene.outputs import run_header, run_table
+    from jaxelastic.scene.problem import padded_dirichlet
 
     built = build(load_scene("twist", overrides={**TWIST, "solver.devices": 2}))
     sh = built.shard

@@ -3,7 +3,7 @@
 Covers :mod:`jaxelastic.solvers.host.pattern` (assembly, elimination, rigid-body modes),
 :mod:`jaxelastic.solvers.host` (DirectSolver, AMGSolver) and
 :class:`jaxelastic.solvers.host.HostLinearSolver` (factor / apply). The Krylov loop of the
-library runs on the device (``solvers.linear.cg``); here a tiny NumPy CG (:func:`_pcg`, a
+library runs on the device (``solvers.linear.krylov``); here a tiny NumPy CG (:func:`_pcg`, a
 test utility) checks that the AMG V-cycle is a good preconditioner.
 """
 

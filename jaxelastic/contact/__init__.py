@@ -2,7 +2,7 @@
 Contact", ACM TOG 39(4)), as one more term of the potential Newton minimises.
 
 * :mod:`~jaxelastic.contact.obstacles`: half-space, sphere, boxes, capsule, user SDF;
-* :mod:`~jaxelastic.contact.barrier`: the clamped log barrier, d̂ and κ;
+* :mod:`~jaxelastic.contact.log_barrier`: the clamped log barrier, d̂ and κ;
 * :mod:`~jaxelastic.contact.friction`: lagged smoothed Coulomb friction;
 * :mod:`~jaxelastic.contact.ccd`: the intersection-free line-search bound;
 * :mod:`~jaxelastic.contact.term`: the :class:`Contact` term held by ``Potential.contact``;
@@ -14,15 +14,15 @@ Contact", ACM TOG 39(4)), as one more term of the potential Newton minimises.
   CCD (:func:`~jaxelastic.contact.ccd.additive_toi`).
 """
 
-from .barrier import barrier as barrier
-from .barrier import barrier_d1 as barrier_d1
-from .barrier import barrier_d2 as barrier_d2
 from .broadphase import Surface as Surface
 from .broadphase import candidate_pairs as candidate_pairs
 from .broadphase import surface_of as surface_of
 from .ccd import additive_toi as additive_toi
 from .ccd import ccd_step as ccd_step
 from .friction import FrictionLag as FrictionLag
+from .log_barrier import barrier as barrier
+from .log_barrier import barrier_d1 as barrier_d1
+from .log_barrier import barrier_d2 as barrier_d2
 from .obstacles import SDF as SDF
 from .obstacles import Box as Box
 from .obstacles import Capsule as Capsule

@@ -44,9 +44,9 @@ import jax
 import jax.numpy as jnp
 
 from ..mechanics.psd import project_psd
-from .barrier import barrier_d1
 from .distance import edge_edge_case, edge_edge_mollifier, point_triangle_case
 from .friction import f0, tangent_basis
+from .log_barrier import barrier_d1
 from .pairs import SelfContact
 
 __all__ = [

@@ -31,7 +31,6 @@ import numpy as np
 from jax import lax
 
 from ..mechanics.psd import project_psd
-from .barrier import barrier
 from .broadphase import (
     HEADROOM,
     Surface,
@@ -48,6 +47,7 @@ from .distance import (
     point_edge_d2_2d,
     point_triangle_d2,
 )
+from .log_barrier import barrier
 
 __all__ = [
     "SelfContact",

@@ -12,8 +12,8 @@ import numpy as np
 
 from ..mechanics.potential import Potential, elastic_element_hessians, node_hessian_blocks
 from ..mesh import boundary_nodes
-from .barrier import adapt_kappa, default_dhat, kappa_from_stiffness
 from .friction import EPS_REL
+from .log_barrier import adapt_kappa, default_dhat, kappa_from_stiffness
 from .pairs import make_self_contact
 from .term import Contact
 
@@ -27,7 +27,7 @@ def contact_nodes(mesh) -> np.ndarray:
 
 def auto_kappa(pot: Potential, nodes) -> jax.Array:
     """κ [N/m] from the elastic Hessian at the rest shape: the mean diagonal node stiffness
-    over ``nodes`` (:func:`~jaxelastic.contact.barrier.kappa_from_stiffness`); inertia and
+    over ``nodes`` (:func:`~jaxelastic.contact.log_barrier.kappa_from_stiffness`); inertia and
     any contact term of ``pot`` are left out. One element-Hessian evaluation.
     """
     base = pot.replace(contact=None, mass=None, mass_damping=None)
@@ -129,6 +129,6 @@ def with_contact(pot: Potential, obstacles: Sequence = (), **kw) -> Potential:
 def adapt(contact: Contact, x: jax.Array, max_kappa=None) -> Contact:
     """``contact`` with κ doubled if the smallest gap (obstacles and self-contact) at
     ``x`` is below 1e-2·d̂
-    (:func:`~jaxelastic.contact.barrier.adapt_kappa`); jit-able."""
+    (:func:`~jaxelastic.contact.log_barrier.adapt_kappa`); jit-able."""
     k = adapt_kappa(contact.kappa, contact.min_distance(x), contact.dhat, max_kappa)
     return contact.replace(kappa=k)

@@ -8,7 +8,7 @@ self-contact between boundary primitives.
 ``Π_c(x) = κ Σ_{o,a} b(d_o(x_a); d̂) + Σ_{o,a} μ_o λ_oa f₀(‖u_oa‖)``
 
 (IPC: Li et al. 2020, "Incremental Potential Contact", ACM TOG 39(4); barrier
-:mod:`~jaxelastic.contact.barrier`, friction :mod:`~jaxelastic.contact.friction`). Π_c is
+:mod:`~jaxelastic.contact.log_barrier`, friction :mod:`~jaxelastic.contact.friction`). Π_c is
 a sum of per-node terms, so its Hessian is block diagonal: one ``(dim, dim)`` block per
 contact node, PSD-projected for Newton (eigenvalues clamped at 0; exact for a half-space,
 where it is ``κ b''(d) n nᵀ``; around a convex obstacle the tangential eigenvalue
@@ -37,9 +37,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..mechanics.psd import project_psd
-from .barrier import barrier, barrier_d1, kappa_update
 from .ccd import ccd_step, safe_norm
 from .friction import FrictionLag, friction_node_energy, tangent_basis
+from .log_barrier import barrier, barrier_d1, kappa_update
 from .pair_friction import PairFrictionLag, lag_pair_friction
 from .pairs import STEP_MARGIN_MAX as STEP_MARGIN_MAX
 from .pairs import SelfContact
@@ -266,7 +266,7 @@ class Contact:
         return self.self_contact is not None
 
     def adapt_init(self, x: jax.Array, max_factor: float):
-        """The state of IPC's in-solve κ adaptation (:func:`~.barrier.kappa_update`) from
+        """The state of IPC's in-solve κ adaptation (:func:`~.log_barrier.kappa_update`) from
         ``x``: κ, its cap ``max_factor·κ`` and the smallest gap."""
         k0 = jnp.asarray(self.kappa, x.dtype)
         return dict(kappa=k0, kappa_max=k0 * max_factor, gap=self.min_distance(x).astype(x.dtype))

@@ -8,7 +8,7 @@
 * :mod:`~jaxelastic.fitting.cases`: the case protocol, :class:`LoadCase`,
   :class:`TrajectoryCase`;
 * :mod:`~jaxelastic.fitting.objective`: the compiled objective in unconstrained variables;
-* :mod:`~jaxelastic.fitting.fit`: :func:`fit` with optax;
+* :mod:`~jaxelastic.fitting.optimization`: :func:`fit` with optax;
 * :mod:`~jaxelastic.fitting.identifiability`: :func:`loss_landscape`, :func:`loss_hessian`.
 """
 
@@ -19,8 +19,6 @@ from .cases import TrajectoryCase as TrajectoryCase
 from .elastic import LameOf as LameOf
 from .elastic import Material as Material
 from .elastic import material_parametrization as material_parametrization
-from .fit import FitResult as FitResult
-from .fit import fit as fit
 from .identifiability import loss_hessian as loss_hessian
 from .identifiability import loss_landscape as loss_landscape
 from .objective import FIT_SOLVER as FIT_SOLVER
@@ -31,6 +29,8 @@ from .observations import add_noise as add_noise
 from .observations import choose_markers as choose_markers
 from .observations import nested_nodes as nested_nodes
 from .observations import observation_loss as observation_loss
+from .optimization import FitResult as FitResult
+from .optimization import fit as fit
 from .parameters import Parametrization as Parametrization
 from .parameters import make_parametrization as make_parametrization
 from .parameters import region_adjacency as region_adjacency
@@ -39,3 +39,33 @@ from .transforms import Fixed as Fixed
 from .transforms import Free as Free
 from .transforms import Positive as Positive
 from .transforms import Transform as Transform
+
+__all__ = [
+    "Case",
+    "CaseAux",
+    "LoadCase",
+    "TrajectoryCase",
+    "LameOf",
+    "Material",
+    "material_parametrization",
+    "loss_hessian",
+    "loss_landscape",
+    "FIT_SOLVER",
+    "Objective",
+    "make_objective",
+    "parametrize",
+    "add_noise",
+    "choose_markers",
+    "nested_nodes",
+    "observation_loss",
+    "FitResult",
+    "fit",
+    "Parametrization",
+    "make_parametrization",
+    "region_adjacency",
+    "Bounded",
+    "Fixed",
+    "Free",
+    "Positive",
+    "Transform",
+]

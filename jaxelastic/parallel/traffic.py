@@ -63,7 +63,7 @@ def communication(pot_s: Potential, bc_s: Dirichlet, *, layouts=LAYOUTS, repeat:
     For each layout: ``hvp`` (one :func:`~jaxelastic.hvp`), ``matvec`` (one CG matvec
     from element Hessians, :func:`~jaxelastic.mechanics.potential.element_hessian_vp`) and
     ``cg_iteration`` (one iteration of block-Jacobi CG, the ``while`` body of
-    :func:`~jaxelastic.solvers.linear.cg`): :func:`collective_bytes` dicts (per device)
+    :func:`~jaxelastic.solvers.linear.krylov`): :func:`collective_bytes` dicts (per device)
     plus ``time_s`` (min over ``repeat`` runs of 10 calls, divided by 10) for ``hvp`` and
     ``matvec``. ``halo_estimate_bytes``: the ghost traffic :class:`Halo` predicts for one
     3-vector gather.

@@ -12,14 +12,12 @@ and :func:`run_fit` identifies E and ν as its ``[fit]`` table says (``jaxelasti
 Modules, in import order: :mod:`~jaxelastic.scene.errors`, :mod:`~jaxelastic.scene.where`
 (selection expressions), :mod:`~jaxelastic.scene.callables` (``"module:function"``),
 :mod:`~jaxelastic.scene.schema` (the pydantic models), :mod:`~jaxelastic.scene.docs` (the
-generated reference), :mod:`~jaxelastic.scene.load`, :mod:`~jaxelastic.scene.build`,
+generated reference), :mod:`~jaxelastic.scene.load`, :mod:`~jaxelastic.scene.problem`,
 :mod:`~jaxelastic.scene.outputs`, :mod:`~jaxelastic.scene.run`, :mod:`~jaxelastic.scene.fit`.
 Shipped scenes (``scene/data/*.toml``): ``default`` (a neo-Hookean beam released under
 gravity), ``twist``, ``cook``, ``swing2d``, ``fit_cantilever`` (:func:`shipped_scenes`).
 """
 
-from .build import Built as Built
-from .build import build as build
 from .docs import reference_markdown as reference_markdown
 from .errors import SceneError as SceneError
 from .fit import run_fit as run_fit
@@ -27,6 +25,8 @@ from .load import Scene as Scene
 from .load import apply_overrides as apply_overrides
 from .load import load_scene as load_scene
 from .load import shipped_scenes as shipped_scenes
+from .problem import Built as Built
+from .problem import build as build
 from .run import run_scene as run_scene
 from .schema import SceneSpec as SceneSpec
 from .schema import json_schema as json_schema

@@ -25,7 +25,6 @@ from .. import fitting
 from ..materials import Lame
 from ..solvers import GradientError, SolveError
 from . import interrupt, memory
-from .build import Built, build, newton_of
 from .errors import SceneError
 from .interrupt import Interrupted
 from .load import Scene, load_scene
@@ -38,6 +37,7 @@ from .outputs import (
     save_npz,
     save_png,
 )
+from .problem import Built, build, newton_of
 from .run import static_solve
 from .schema import FitCase, FitSpec
 from .where import where_mask

@@ -26,9 +26,9 @@ from ..io import TimeSeriesWriter, to_jsonable, write_atomic, write_json
 from ..loads import Dirichlet
 from ..mechanics.kernels import energy
 from ..postprocess import stress_fields
-from .build import Built, linear_solver_name
 from .errors import SceneError
 from .load import Scene
+from .problem import Built, linear_solver_name
 from .schema import DynamicIntegrator
 
 __all__ = [

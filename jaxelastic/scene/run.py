@@ -24,7 +24,6 @@ from ..loads import Dirichlet
 from ..parallel.distributed import host_array
 from ..solvers import Solution, SolveError, solve_incremental
 from . import interrupt, memory
-from .build import Built, build, padded_dirichlet
 from .contact import contact_report, min_gap
 from .interrupt import Interrupted
 from .load import load_scene
@@ -46,6 +45,7 @@ from .outputs import (
     vtu_plane,
     write_static_vtu,
 )
+from .problem import Built, build, padded_dirichlet
 from .schema import DynamicIntegrator, StaticIntegrator
 
 __all__ = ["run_scene", "static_solve", "settle_ratio", "ROUNDOFF_ENERGY"]

@@ -1,6 +1,6 @@
 """Host (NumPy/SciPy) linear algebra behind the device conjugate-gradient loop.
 
-The device CG (:func:`jaxelastic.solvers.linear.cg`) runs every Krylov iteration; the host
+The device CG (:func:`jaxelastic.solvers.linear.krylov`) runs every Krylov iteration; the host
 only factorises the assembled Newton matrix and applies the result:
 
 * :mod:`~jaxelastic.solvers.host.assembled`: :class:`HostLinearSolver`, one per (mesh,

@@ -299,7 +299,7 @@ class AMGSolver:
         """Preconditioned CG on the host with the fine-level matrix and one cycle per
         iteration (:func:`host_cg`): ``(x, iterations, status)``.
 
-        The same iteration as the device :func:`~jaxelastic.solvers.linear.cg` with this
+        The same iteration as the device :func:`~jaxelastic.solvers.linear.krylov` with this
         preconditioner, without a device round trip per iteration: the product with the
         assembled matrix (BSR, 1.9 ms at 81k dofs) replaces the element-by-element product
         on the device (15 ms), and no cycle is spent after the last iterate (measured at

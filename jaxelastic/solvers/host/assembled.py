@@ -2,7 +2,7 @@
 
 :class:`HostLinearSolver` is built once per (mesh, Dirichlet mask): it analyses the
 sparsity pattern and keeps a :mod:`~jaxelastic.solvers.host` back end. The device CG
-(:func:`jaxelastic.solvers.linear.cg`) runs every Krylov iteration and reaches the host
+(:func:`jaxelastic.solvers.linear.krylov`) runs every Krylov iteration and reaches the host
 through :func:`jax.pure_callback` only to
 
 * :meth:`HostLinearSolver.factor_upper`: take the upper-triangle CSR data of the Newton

@@ -1,7 +1,7 @@
 """Preconditioned conjugate gradients on the host (NumPy), the twin of the device CG.
 
 :func:`host_cg` runs the same iteration, stopping rules and statuses as
-:func:`jaxelastic.solvers.linear.cg`, with inner products that make no BLAS call
+:func:`jaxelastic.solvers.linear.krylov`, with inner products that make no BLAS call
 (:func:`blas_free_dot`).
 """
 
@@ -15,7 +15,7 @@ __all__ = ["host_cg", "blas_free_dot"]
 
 
 def host_cg(A, b, M, tol: float, max_iter: int) -> tuple[np.ndarray, int, int]:
-    """Preconditioned CG in NumPy, the host twin of :func:`jaxelastic.solvers.linear.cg`.
+    """Preconditioned CG in NumPy, the host twin of :func:`jaxelastic.solvers.linear.krylov`.
 
     Same stopping rules and statuses: ``‖r‖ ≤ tol`` (recurrence residual) → SUCCESS;
     ``max_iter`` iterations → MAX_STEPS; non-positive curvature ``pᵀAp ≤ 0`` →

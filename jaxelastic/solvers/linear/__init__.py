@@ -1,7 +1,7 @@
 """Linear solvers of the Newton system: settings, explicit state, one ``auto`` table.
 
 ``protocol`` (:class:`LinearSolver`, :class:`LinearState`) → ``system`` (the Newton
-operator) → ``cg`` (the one device CG, :class:`CG`) → ``host`` (:class:`Direct`,
+operator) → ``krylov`` (the one device CG, :class:`CG`) → ``host`` (:class:`Direct`,
 :class:`AMG`) and ``multilevel`` (:class:`Multilevel`) → ``auto`` (what ``"auto"`` picks)
 → ``selection`` (:func:`resolve`, :func:`init_linear`).
 """
@@ -11,14 +11,14 @@ from .auto import AUTO_DIRECT_MAX_DOFS_P2 as AUTO_DIRECT_MAX_DOFS_P2
 from .auto import AUTO_DIRECT_MAX_DOFS_QUADRATIC as AUTO_DIRECT_MAX_DOFS_QUADRATIC
 from .auto import LINEAR_SOLVERS as LINEAR_SOLVERS
 from .auto import choose as choose
-from .cg import CG as CG
-from .cg import block_jacobi as block_jacobi
-from .cg import cg as cg
-from .cg import jacobi as jacobi
 from .host import AMG as AMG
 from .host import Direct as Direct
 from .host import HostSolver as HostSolver
 from .host import assemble_upper as assemble_upper
+from .krylov import CG as CG
+from .krylov import block_jacobi as block_jacobi
+from .krylov import cg as cg
+from .krylov import jacobi as jacobi
 from .multilevel import Multilevel as Multilevel
 from .protocol import LinearSolver as LinearSolver
 from .protocol import LinearState as LinearState

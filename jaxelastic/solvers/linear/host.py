@@ -23,7 +23,7 @@ from jax import lax
 from ..host.assembled import HostLinearSolver
 from ..host.pattern import local_upper
 from ..results import Solution, Status
-from .cg import cg
+from .krylov import cg
 from .protocol import LinearSolver, LinearState
 from .system import NewtonSystem, mass_or_zeros
 

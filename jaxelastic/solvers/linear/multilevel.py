@@ -1,5 +1,5 @@
 """The device multigrid solver :class:`Multilevel`: aggregation multigrid built once on the
-host, applied on the device inside ``jit`` as the preconditioner of :func:`~.cg.cg`."""
+host, applied on the device inside ``jit`` as the preconditioner of :func:`~.krylov.cg`."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from ..multilevel import (
     sharded_preconditioner,
 )
 from ..results import Solution
-from .cg import cg
+from .krylov import cg
 from .protocol import LinearSolver, LinearState
 from .system import NewtonSystem
 

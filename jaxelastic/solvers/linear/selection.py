@@ -10,8 +10,8 @@ from jax.core import Tracer
 
 from ...parallel.sharding import is_sharded
 from .auto import LINEAR_SOLVERS, choose
-from .cg import CG
 from .host import AMG, Direct, HostSolver
+from .krylov import CG
 from .multilevel import Multilevel
 from .protocol import LinearSolver, LinearState
 

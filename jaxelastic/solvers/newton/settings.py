@@ -57,7 +57,7 @@ class Newton:
         kappa_max_factor: potential terms with an adaptive stiffness (the contact
             barrier's κ, :meth:`~jaxelastic.contact.Contact.adapt`) may raise it inside the
             solve to this multiple of its starting value: 1 (default) is off, IPC uses 100
-            (:data:`~jaxelastic.contact.barrier.KAPPA_MAX_FACTOR`). Off by default because
+            (:data:`~jaxelastic.contact.log_barrier.KAPPA_MAX_FACTOR`). Off by default because
             the adapted stiffness lives only in the solution (``stats["kappa"]``): forces
             computed from the original potential would use the old one (use
             :func:`~jaxelastic.solvers.newton.solved_potential`), and in dynamics every
