@@ -11,7 +11,7 @@ fewer time steps, a smaller grid, fewer fits; every claim still asserted) runs i
 under ``-m extended`` and at full size under ``-m slow``; the documentation build
 (``mkdocs build`` in ``.ci/run``) executes every notebook at full size too. A notebook without
 the switch runs at full size under ``-m extended``, except those in ``SLOW_ONLY``. The whole
-file is in the second tier (``pytest -m 'extended or slow'``, run by ``.ci/run``).
+file is in the second tier (``pytest -m extended``, run by ``.ci/run``).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import pytest
 from jupyter_client.kernelspec import KernelSpecManager
 from nbclient import NotebookClient
 
-pytestmark = pytest.mark.extended  # the second tier: pytest -m 'extended or slow'
+pytestmark = pytest.mark.extended  # the second tier: pytest -m extended
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 NOTEBOOK_DIR = ROOT / "notebooks"
