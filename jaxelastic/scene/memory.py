@@ -25,12 +25,12 @@ of them in the element upper triangles (:func:`estimate_parts`):
   0.5 GB for the process with JAX, SciPy and PyAMG loaded and a small compiled program.
 
 The total is the peak resident memory of the process; it is compared with the memory the
-process can still grow to (its resident size now plus the memory available). Recalibrated
-(session 5) against the peak RSS of twist solves (``tests/test_sparse.py`` checks one
-within 1.5×): n = 10 (4k dofs, direct) 533 MiB measured / 530 MiB estimated; n = 19 (24k dofs,
-direct) 805 / 916 MiB; n = 29 (81k
-dofs, AMG) 1460–1571 MiB measured / 1517 MiB estimated. It is meant to refuse a mesh that
-cannot fit before a NumPy allocation fails after minutes, not to predict the peak exactly.
+process can still grow to (its resident size now plus the memory available). Calibrated
+against the peak RSS of twist solves (``tests/test_sparse.py`` checks one within 1.5×):
+n = 10 (4k dofs, direct) 533 MiB measured / 530 MiB estimated; n = 19 (24k dofs, direct)
+805 / 916 MiB; n = 29 (81k dofs, AMG) 1460–1571 MiB measured / 1517 MiB estimated. It is
+meant to refuse a mesh that cannot fit before a NumPy allocation fails after minutes, not
+to predict the peak exactly.
 """
 
 from __future__ import annotations
