@@ -64,7 +64,8 @@ FAMILIES = {
     "holzapfel_gasser_ogden": holzapfel_gasser_ogden,
 }
 """Name → ψ of the rubber and soft-tissue models (:mod:`jaxelastic.materials.rubber`,
-:mod:`jaxelastic.materials.fibres`), each with its own parameter type (not :class:`Lame`)."""
+:mod:`jaxelastic.materials.fibres`), each with its own parameter type (not
+:class:`~jaxelastic.materials.parameters.Lame`)."""
 
 FAMILY_PARAMS = {
     "mooney_rivlin": mooney_rivlin_params,

@@ -26,11 +26,11 @@ of them in the element upper triangles (:func:`estimate_parts`):
 
 The total is the peak resident memory of the process; it is compared with the memory the
 process can still grow to (its resident size now plus the memory available). Calibrated
-(2026-12-02, commit 7e38286, 2-core x86-64) against the peak RSS of twist solves
-(``tests/test_sparse.py`` checks one within 1.5×): n = 10 (4k dofs, direct) 533 MiB measured / 530 MiB estimated; n = 19 (24k dofs,
-direct) 805 / 916 MiB; n = 29 (81k
-dofs, AMG) 1460–1571 MiB measured / 1517 MiB estimated. It is meant to refuse a mesh that
-cannot fit before a NumPy allocation fails after minutes, not to predict the peak exactly.
+against the peak RSS of twist solves (``tests/test_sparse.py`` checks one within 1.5×):
+n = 10 (4k dofs, direct) 533 MiB measured / 530 MiB estimated; n = 19 (24k dofs, direct)
+805 / 916 MiB; n = 29 (81k dofs, AMG) 1460–1571 MiB measured / 1517 MiB estimated. It is
+meant to refuse a mesh that cannot fit before a NumPy allocation fails after minutes, not
+to predict the peak exactly.
 """
 
 from __future__ import annotations
