@@ -66,10 +66,12 @@ KAPPA = E_YOUNG / (3.0 * (1.0 - 2.0 * NU))
 
 
 _hessians = jax.jit(
-    lambda x, mesh, p: jaxelastic.element_hessians(isochoric_neo_hookean, x, mesh, p)
+    lambda x, mesh, p: jaxelastic.mechanics.element_hessians(isochoric_neo_hookean, x, mesh, p)
 )
 _hessians_psd = jax.jit(
-    lambda x, mesh, p: jaxelastic.element_hessians(isochoric_neo_hookean, x, mesh, p, project=True)
+    lambda x, mesh, p: jaxelastic.mechanics.element_hessians(
+        isochoric_neo_hookean, x, mesh, p, project=True
+    )
 )
 
 

@@ -43,8 +43,8 @@ def _mesh(dim):
 
 
 # one compilation per mesh shape (the mesh is a jit argument, never closed over)
-_element_hessians = jax.jit(jaxelastic.element_hessians, static_argnums=0)
-_hvp = jax.jit(jaxelastic.hvp, static_argnums=0)
+_element_hessians = jax.jit(jaxelastic.mechanics.element_hessians, static_argnums=0)
+_hvp = jax.jit(jaxelastic.mechanics.hvp, static_argnums=0)
 
 
 def _deformed(mesh, seed=0, amp=0.03):
