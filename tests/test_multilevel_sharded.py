@@ -193,7 +193,7 @@ def test_refusals(tw):
     with pytest.raises(ValueError, match="smooth=True"):
         je.solvers.init_linear(je.Multilevel(smooth=True), pot_s.mesh, bc_s)
     with pytest.raises(ValueError, match="bound to a one-device mesh"):
-        je.solve(pot_s, bc_s, solver=je.Newton(linear=one))
+        je.solve(pot_s, bc_s, solver=je.Newton(linear=ML), linear_state=one)
 
 
 @pytest.mark.slow
