@@ -583,6 +583,31 @@ def test_import_does_not_flip_x64():
     assert r.returncode == 0, r.stderr[-3000:]
 
 
+def test_import_starts_no_jax_runtime():
+    """Importing every package runs no JAX computation and lists no device: a multi-process
+    job must be able to call jax.distributed.initialize after ``import jaxelastic``."""
+    code = (
+        "import jax._src.xla_bridge as xb\n"
+        "def refuse(*a, **k):\n"
+        "    import traceback; traceback.print_stack()\n"
+        "    raise SystemExit('the import started a JAX backend')\n"
+        "xb.backends = refuse\n"
+        "import jaxelastic, jaxelastic.cli, jaxelastic.scene, jaxelastic.fitting\n"
+        "import jaxelastic.parallel, jaxelastic.verification, jaxelastic.dynamics\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
+    env["JAX_PLATFORMS"] = "cpu"
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+
+
 if __name__ == "__main__":  # pragma: no cover - a quick listing without pytest
     for title, items in (
         ("import cycles", import_cycles()),

@@ -46,6 +46,7 @@ from .registry import FAMILIES as FAMILIES
 from .registry import FAMILY_KEYS as FAMILY_KEYS
 from .registry import FAMILY_PARAMS as FAMILY_PARAMS
 from .registry import FAMILY_POSITIVE_KEYS as FAMILY_POSITIVE_KEYS
+from .registry import FAMILY_TYPES as FAMILY_TYPES
 from .registry import MODEL_NAMES as MODEL_NAMES
 from .rubber import ArrudaBoyce as ArrudaBoyce
 from .rubber import Gent as Gent
@@ -89,6 +90,7 @@ __all__ = [
     "BUILTIN",
     "FAMILIES",
     "FAMILY_PARAMS",
+    "FAMILY_TYPES",
     "MODEL_NAMES",
     "FAMILY_KEYS",
     "FAMILY_POSITIVE_KEYS",

@@ -9,7 +9,7 @@ schema validates ``[material]`` against.
 
 from __future__ import annotations
 
-from .fibres import holzapfel_gasser_ogden, holzapfel_gasser_ogden_params
+from .fibres import HolzapfelGasserOgden, holzapfel_gasser_ogden, holzapfel_gasser_ogden_params
 from .isotropic import (
     arap,
     corotated,
@@ -21,6 +21,11 @@ from .isotropic import (
     stvk,
 )
 from .rubber import (
+    ArrudaBoyce,
+    Gent,
+    MooneyRivlin,
+    Ogden,
+    Yeoh,
     arruda_boyce,
     arruda_boyce_params,
     gent,
@@ -37,6 +42,7 @@ __all__ = [
     "BUILTIN",
     "FAMILIES",
     "FAMILY_PARAMS",
+    "FAMILY_TYPES",
     "MODEL_NAMES",
     "FAMILY_KEYS",
     "FAMILY_POSITIVE_KEYS",
@@ -82,7 +88,19 @@ FAMILY_PARAMS = {
 MODEL_NAMES = (*BUILTIN, *FAMILIES)
 """Every built-in model name: the Lamé laws, then the rubber/tissue families."""
 
-FAMILY_KEYS = {name: tuple(f()._fields) for name, f in FAMILY_PARAMS.items()}
+FAMILY_TYPES = {
+    "mooney_rivlin": MooneyRivlin,
+    "yeoh": Yeoh,
+    "ogden": Ogden,
+    "gent": Gent,
+    "arruda_boyce": ArrudaBoyce,
+    "holzapfel_gasser_ogden": HolzapfelGasserOgden,
+}
+"""Name → the parameter type (a ``NamedTuple``) of each of :data:`FAMILIES`."""
+
+# read from the types, not from instances: building the typical values runs JAX, and a
+# library import must not start JAX's runtime (jax.distributed.initialize must come first)
+FAMILY_KEYS = {name: tuple(t._fields) for name, t in FAMILY_TYPES.items()}
 """Rubber/tissue model name → its parameter keys (the fields of its parameter type, e.g.
 ``("c10", "c01", "kappa")`` for ``mooney_rivlin``), all required in a scene's ``[material]``."""
 

@@ -27,7 +27,7 @@ from ..loads import Dirichlet
 from ..materials import (
     BUILTIN,
     FAMILIES,
-    FAMILY_PARAMS,
+    FAMILY_TYPES,
     Lame,
     lame,
 )
@@ -328,7 +328,7 @@ def _family_params(scene: Scene, mesh: Mesh, md: MeshData | None):
     fibre directions per cell, ``(n_cells, ·)``: see :func:`_fibre_field`)."""
     m = scene.spec.material
     dtype = jnp.zeros(()).dtype
-    fields = FAMILY_PARAMS[m.model]()._fields
+    fields = FAMILY_TYPES[m.model]._fields
     raw: dict = {}  # the mesh file's cell data, read once if a fibre key asks for it
     vals = {
         k: jnp.asarray(
@@ -339,7 +339,7 @@ def _family_params(scene: Scene, mesh: Mesh, md: MeshData | None):
         )
         for k in fields
     }
-    return type(FAMILY_PARAMS[m.model]())(**vals)
+    return FAMILY_TYPES[m.model](**vals)
 
 
 _FIBRE_KEYS = ("a01", "a02")
