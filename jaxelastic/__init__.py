@@ -153,6 +153,10 @@ _MOVED = {
     "sharding": (parallel.sharding, "je.parallel.sharding"),
     "distributed": (parallel.distributed, "je.parallel.distributed"),
     "reference": (materials.reference, "je.materials.reference"),
+    "rubber": (materials.rubber, "je.materials.rubber (or je.materials.mooney_rivlin, ...)"),
+    "fibres": (materials.fibres, "je.materials.fibres"),
+    "spectral": (materials.spectral, "je.materials.spectral"),
+    "fusion": (mechanics.fusion, "je.mechanics.fusion"),
     "benchmarks": (verification, "je.verification"),
     "crosscheck": (verification.derivative_check, "je.verification.derivative_check"),
 }

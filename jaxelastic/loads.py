@@ -384,3 +384,26 @@ def gravity_load(mesh: Mesh, density, g, *, consistent: bool = False) -> np.ndar
     return _mesh_dtype(
         mesh, _scatter(mesh, np.asarray(mesh.cells), rho[:, None] * n1)[:, None] * gv
     )
+
+
+_MOVED = ("reaction_force", "facet_tractions")
+"""Reactions and facet tractions moved to :mod:`jaxelastic.postprocess`; the old names
+still resolve."""
+
+
+def __getattr__(name: str):
+    """``loads.reaction_force`` and ``loads.facet_tractions``, with a DeprecationWarning."""
+    if name in _MOVED:
+        import importlib
+        import warnings
+
+        warnings.warn(
+            f"jaxelastic.loads.{name} is deprecated and will be removed: use "
+            f"jaxelastic.postprocess.{name}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        # by name, at attribute access only: a forward of a deprecated name, not a
+        # dependency of the loads on the (higher) post-processing layer
+        return getattr(importlib.import_module("jaxelastic.postprocess"), name)
+    raise AttributeError(f"module 'jaxelastic.loads' has no attribute {name!r}")

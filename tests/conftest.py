@@ -1,5 +1,6 @@
-"""Test configuration: float64 everywhere and strict rank promotion (as equinox does), and
-4 host CPU devices for the sharding tests (tests/test_sharding.py).
+"""Test configuration: float64 everywhere and strict rank promotion (as equinox does),
+4 host CPU devices for the sharding tests (tests/test_sharding.py), and XLA's CPU back end
+at optimisation level 0 (faster compilation; see below).
 
 ``--xla_force_host_platform_device_count=4`` must be in ``XLA_FLAGS`` before jax is
 imported. It changes nothing for single-device code (every array still lives on device 0
@@ -12,6 +13,15 @@ import os
 _FLAG = "--xla_force_host_platform_device_count"
 if _FLAG not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + f" {_FLAG}=4").strip()
+
+# XLA's CPU back end without LLVM's optimisation passes: the tests are dominated by XLA
+# compilation of small programs (tests/test_newton.py in one process: 70 of 98 s in
+# backend compilation), and at level 0 the file runs in 79 s instead of 99 s (2-core
+# x86-64, 2026-12-04). The arithmetic is the same (no fast-math at either level); the
+# benchmarks in scripts/ and the library itself keep XLA's default.
+_OPT = "--xla_backend_optimization_level"
+if _OPT not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + f" {_OPT}=0").strip()
 
 # The CLI's persistent compilation cache (jaxelastic.cli.cache_dir) goes to one temporary
 # directory per test session (set by the controller, inherited by the xdist workers and by
@@ -31,6 +41,7 @@ import jax  # noqa: E402  (after XLA_FLAGS)
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 # One persistent compilation cache per test session, shared by the xdist workers (the
 # directory above): many tests compile the same programs (the same Newton pieces on meshes

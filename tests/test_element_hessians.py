@@ -213,8 +213,9 @@ def test_float32_translated_mesh_rest_residual_is_zero():
         f = _forces(psi, mesh.points, mesh, p)
         assert f.dtype == jnp.float32
         assert float(jnp.abs(f).max()) == 0.0, psi.__name__
-    f_old = jax.jit(_old_forces, static_argnums=0)(M.neo_hookean, mesh.points, mesh, p)
-    assert float(jnp.abs(f_old).max()) > 1e-6  # what the absolute-position F gave
+    # (F from absolute positions gives a non-zero rest residual here when XLA contracts
+    # products into FMAs, and exactly 0 when it does not: that comparison is the deformed
+    # test below, whose ratio does not hang on the compiler's flags)
 
 
 def test_float32_deformed_residual_floor_drops():

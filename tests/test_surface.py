@@ -30,6 +30,10 @@ def test_top_level_is_small_and_every_name_resolves():
         ("Partition", lambda: je.parallel.Partition),
         ("benchmarks", lambda: je.verification),
         ("lame", lambda: je.materials.lame),
+        ("rubber", lambda: je.materials.rubber),
+        ("fibres", lambda: je.materials.fibres),
+        ("spectral", lambda: je.materials.spectral),
+        ("fusion", lambda: je.mechanics.fusion),
     ],
 )
 def test_moved_names_warn_and_still_work(name, new):
@@ -38,6 +42,24 @@ def test_moved_names_warn_and_still_work(name, new):
     assert obj is new()
     with pytest.raises(AttributeError, match="no attribute"):
         je.no_such_name  # noqa: B018
+
+
+@pytest.mark.parametrize(
+    "module, name",
+    [
+        ("loads", "reaction_force"),
+        ("loads", "facet_tractions"),
+        ("io", "cell_fields"),
+        ("io", "nodal_stress"),
+        ("io", "stress_fields"),
+    ],
+)
+def test_postprocessing_names_moved_from_loads_and_io_warn(module, name):
+    with pytest.warns(DeprecationWarning, match=f"use jaxelastic.postprocess.{name}"):
+        obj = getattr(getattr(je, module), name)
+    assert obj is getattr(je.postprocess, name)
+    with pytest.raises(AttributeError, match="no attribute"):
+        getattr(getattr(je, module), "no_such_name")
 
 
 def test_element_forces_have_the_sign_of_forces():

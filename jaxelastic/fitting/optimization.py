@@ -42,7 +42,16 @@ def _named_optimizer(name: str, learning_rate: float):
 
 @functools.lru_cache(maxsize=16)
 def _update_fn(optimizer):
-    return jax.jit(optimizer.update)
+    """The optimiser's update, compiled; traced under JAX's standard dtype promotion (optax's
+    own arithmetic, e.g. Adam's bias correction, mixes Python floats with int32 counters,
+    which a session running ``jax_numpy_dtype_promotion="strict"`` would refuse)."""
+    compiled = jax.jit(optimizer.update)
+
+    def update(*args):
+        with jax.numpy_dtype_promotion("standard"):
+            return compiled(*args)
+
+    return update
 
 
 class FitResult(NamedTuple):

@@ -37,3 +37,23 @@ __all__ = [
     "contact_point_data",
     "write_vtu",
 ]
+
+_MOVED = ("cell_fields", "nodal_stress", "stress_fields")
+"""Stress recovery moved to :mod:`jaxelastic.postprocess`; the old names still resolve."""
+
+
+def __getattr__(name: str):
+    """``jaxelastic.io.cell_fields`` and friends, with a DeprecationWarning."""
+    if name in _MOVED:
+        import warnings
+
+        from .. import postprocess
+
+        warnings.warn(
+            f"jaxelastic.io.{name} is deprecated and will be removed: use "
+            f"jaxelastic.postprocess.{name}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(postprocess, name)
+    raise AttributeError(f"module 'jaxelastic.io' has no attribute {name!r}")

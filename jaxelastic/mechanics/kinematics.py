@@ -95,7 +95,9 @@ def displacements(x: jax.Array, mesh) -> jax.Array:
     cast to ``mesh.points.dtype`` (the working precision: nothing is promoted beyond it).
     """
     X = mesh.points
-    u = x - X
+    with jax.numpy_dtype_promotion("standard"):  # explicit, so valid under "strict" too
+        wide = jnp.promote_types(x.dtype, X.dtype)
+    u = x.astype(wide) - X.astype(wide)
     return u if u.dtype == X.dtype else u.astype(X.dtype)
 
 

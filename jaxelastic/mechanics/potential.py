@@ -137,6 +137,13 @@ def is_array(a) -> bool:
     return hasattr(a, "shape") and hasattr(a, "dtype")
 
 
+def _wider(dt, mesh_dtype) -> bool:
+    """Whether ``dt`` would promote ``mesh_dtype`` (JAX's standard lattice, whatever the
+    session's ``jax_numpy_dtype_promotion``)."""
+    with jax.numpy_dtype_promotion("standard"):
+        return jnp.promote_types(dt, mesh_dtype) != mesh_dtype
+
+
 def _widening_leaves(pot: Potential, mesh_dtype):
     """``(name, dtype)`` of every strongly typed float leaf wider than the mesh's dtype."""
     named = [(k, getattr(pot, k)) for k in _FIELD_SHAPES] + [("params", pot.params)]
@@ -146,7 +153,7 @@ def _widening_leaves(pot: Potential, mesh_dtype):
             if not is_array(leaf) or getattr(leaf, "weak_type", False):
                 continue
             dt = jax.dtypes.canonicalize_dtype(leaf.dtype)
-            if jnp.issubdtype(dt, jnp.floating) and jnp.promote_types(dt, mesh_dtype) != mesh_dtype:
+            if jnp.issubdtype(dt, jnp.floating) and _wider(dt, mesh_dtype):
                 yield name + jax.tree_util.keystr(path), dt
 
 

@@ -170,7 +170,7 @@ class HostSolver(LinearSolver):
         md = mass_or_zeros(system)
         dx, its, st = self._factor_and_solve(_backend(state), system, A, Ke, md, rhs, tol, token)
         stats = dict(iterations=its, residual=jnp.zeros((), rhs.dtype))
-        return Solution(x=dx * system.free, status=st.astype(jnp.int32), stats=stats)
+        return Solution(x=jnp.where(system.free, dx, 0.0), status=st.astype(jnp.int32), stats=stats)
 
     def exact(self, state, system: NewtonSystem, b, rtol, max_iter: int) -> Solution:
         """Device PCG on the exact operator, preconditioned by the host factorisation (or
@@ -183,7 +183,7 @@ class HostSolver(LinearSolver):
         free = system.free
 
         def M0(r):
-            return free * _host_apply(backend, r, jnp.asarray(0, jnp.int32))
+            return jnp.where(free, _host_apply(backend, r, jnp.asarray(0, jnp.int32)), 0.0)
 
         first = cg(system.A, b, M0, tol=tol, max_iter=min(self.reuse_iter, max_iter))
         y0 = jnp.where(jnp.all(jnp.isfinite(first.x)), first.x, 0.0)
@@ -195,7 +195,7 @@ class HostSolver(LinearSolver):
         token = _host_factor_if(backend, system.Ke, mass_or_zeros(system), need)
 
         def M1(r):
-            return free * _host_apply(backend, r, token)
+            return jnp.where(free, _host_apply(backend, r, token), 0.0)
 
         res = cg(system.A, b, M1, tol=tol, max_iter=max_iter, x0=y0)  # 0 its if done
         its = res.stats["iterations"] + first.stats["iterations"]
@@ -233,7 +233,7 @@ class Direct(HostSolver):
             token = _host_factor(backend, Ke, md, token)
 
             def M(r):
-                return system.free * _host_apply(backend, r, token)
+                return jnp.where(system.free, _host_apply(backend, r, token), 0.0)
 
             res = cg(A, rhs, M, tol=tol, max_iter=2000)
             st = jnp.where(token == Status.NOT_POSITIVE_DEFINITE, token, res.status)
@@ -289,7 +289,7 @@ class AMG(HostSolver):
         token = _host_factor(backend, Ke, md, token)
 
         def M(r):
-            return system.free * _host_apply(backend, r, token)
+            return jnp.where(system.free, _host_apply(backend, r, token), 0.0)
 
         res = cg(A, rhs, M, tol=tol, max_iter=self.max_iter)
         st = jnp.where(token == Status.NOT_POSITIVE_DEFINITE, token, res.status)

@@ -152,7 +152,7 @@ class Multilevel(LinearSolver):
         free = system.free
 
         def apply(r):
-            return free * M(r)
+            return jnp.where(free, M(r), 0.0)
 
         return apply
 

@@ -120,7 +120,7 @@ def linear_step(s: Newton, lstate: LinearState, system: NewtonSystem, rhs, tol) 
         return s.linear.newton_step(lstate, system, A, K, rhs, tol, token)
 
     res = with_retry(attempt, rhs, traced=True, enabled=_retry_enabled(s, system))
-    return res._replace(x=res.x * system.free)
+    return res._replace(x=jnp.where(system.free, res.x, 0.0))
 
 
 def finish(
