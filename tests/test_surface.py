@@ -59,7 +59,7 @@ def test_postprocessing_names_moved_from_loads_and_io_warn(module, name):
         obj = getattr(getattr(je, module), name)
     assert obj is getattr(je.postprocess, name)
     with pytest.raises(AttributeError, match="no attribute"):
-        getattr(getattr(je, module), "no_such_name")
+        getattr(je, module).no_such_name  # noqa: B018
 
 
 def test_element_forces_have_the_sign_of_forces():
