@@ -17,7 +17,8 @@ if _FLAG not in os.environ.get("XLA_FLAGS", ""):
 # XLA's CPU back end without LLVM's optimisation passes: the tests are dominated by XLA
 # compilation of small programs (tests/test_newton.py in one process: 70 of 98 s in
 # backend compilation), and at level 0 the file runs in 79 s instead of 99 s (2-core
-# x86-64, 2026-12-04). The arithmetic is the same (no fast-math at either level); the
+# x86-64, 2026-12-04). Results can differ in the last bits (without optimisation LLVM does
+# not contract a*b + c into fused multiply-adds); no test compares bits across the two. The
 # benchmarks in scripts/ and the library itself keep XLA's default.
 _OPT = "--xla_backend_optimization_level"
 if _OPT not in os.environ.get("XLA_FLAGS", ""):
