@@ -370,6 +370,7 @@ def test_kappa_update_rule():
     assert float(up(jnp.asarray(6.0), kmax, 1e-3, 2e-3, dh)) == 8.0  # bounded
 
 
+@pytest.mark.extended  # a robustness study; the adaptation rule is tested above
 def test_kappa_adaptation_rescues_an_overloaded_contact():
     """A float32 block pressed on the ground by a load ~1e5× κ·d̂: with the automatic κ
     its gap closes towards float32's resolution and Newton stalls (MAX_STEPS); IPC's

@@ -668,6 +668,7 @@ def test_fit_mooney_rivlin_uniaxial_and_shear(block):
     assert H.shape == (2, 2) and np.all(np.linalg.eigvalsh(H) > 0), H
 
 
+@pytest.mark.extended  # the adjoint of a rollout stays in the default tier (test_implicit)
 def test_trajectory_case_gradient(beam2):
     """A released cantilever observed at 3 of 8 backward-Euler steps: zero loss at the truth,
     and the objective's gradient in z matches central differences."""

@@ -61,6 +61,7 @@ def readme_problem(dtype):
     return je.Potential(mesh=mesh, params=params, f_ext=jnp.asarray(g), psi=psi), clamp
 
 
+@pytest.mark.extended  # float32 solves stay in the default tier (test_newton)
 def test_readme_example_in_float32_matches_float64():
     pot32, bc32 = readme_problem(F32)
     assert float_dtypes((pot32, bc32)) == {"float32"}

@@ -106,6 +106,7 @@ def _compressed_start(mesh, bc):
     return jnp.asarray(np.where(np.asarray(bc.mask), X, x0))
 
 
+@pytest.mark.extended  # the projected retry is in the default tier (test_newton)
 def test_indefinite_start_projects_and_recovers(beam):
     """From a strongly compressed start the Hessian is indefinite: CG meets negative
     curvature, the element Hessians are PSD-projected, and the solve still converges to
@@ -120,7 +121,7 @@ def test_indefinite_start_projects_and_recovers(beam):
     np.testing.assert_allclose(res.x, ref.x, rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("kind", ["direct", "amg"])
+@pytest.mark.parametrize("kind", [pytest.param("direct", marks=pytest.mark.extended), "amg"])
 def test_host_newton_indefinite_start_projects(beam, kind):
     """The host Newton loop's first solve runs outside jit on the assembled matrix
     (newton._host_assembled_step); from an indefinite start the projected retry (blocks

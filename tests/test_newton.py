@@ -231,7 +231,10 @@ def test_quadratic_convergence(blk, linear):
     assert max(ratios) < 10.0, (r, ratios)
 
 
-@pytest.mark.parametrize("pc", ["none", "jacobi", "block_jacobi"])
+@pytest.mark.parametrize(
+    "pc",
+    [pytest.param(p, marks=pytest.mark.extended) for p in ("none", "jacobi")] + ["block_jacobi"],
+)
 def test_cg_preconditioners_agree(blk, pc):
     """Matrix-free CG with each preconditioner finds the sparse-direct solution."""
     bc, _ = _uniaxial_bc(blk, 1.4)

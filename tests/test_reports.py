@@ -182,8 +182,7 @@ def test_accuracy_quick_cook_and_patch(tmp_path):
 # --------------------------------------------------------------------------------------
 # stability report, default run
 # --------------------------------------------------------------------------------------
-
-
+@pytest.mark.extended  # a study: the report script end to end
 def test_stability_quick_subset(tmp_path):
     res = stab.run(
         tmp_path,
