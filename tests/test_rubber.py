@@ -251,6 +251,7 @@ def _shear_closed_form(name, p, g):
     return sum(mu * (lam**a - lam**-a) for mu, a in pairs) / (lam + 1 / lam)
 
 
+@pytest.mark.extended  # uniaxial/equibiaxial through the solver stay in the default tier
 @pytest.mark.parametrize("name", _one_fast(RUBBER, "ogden"))
 def test_simple_shear_through_solver(name):
     """x = X + γ Y e₁ on the boundary of box(2, 2, 2) (one free interior node), γ = 0.8:
