@@ -43,7 +43,7 @@ def _assert_all_pass(rows):
     assert not failed, cc.format_table(failed)
 
 
-@pytest.mark.extended  # the whole quick battery; the hand-P comparisons stay in the default tier (test_materials)
+@pytest.mark.extended  # the quick battery; hand P vs autodiff stays in test_materials
 def test_quick_rows_pass(quick_rows):
     _assert_all_pass(quick_rows)
     seen = {(r["model"], r["dim"], r["check"]) for r in quick_rows}
@@ -72,7 +72,7 @@ def test_rows_cover_every_model_dim_and_check(rows):
     _assert_cases(rows)
 
 
-@pytest.mark.extended  # the whole quick battery; the hand-P comparisons stay in the default tier (test_materials)
+@pytest.mark.extended  # the quick battery; hand P vs autodiff stays in test_materials
 def test_quick_rows_cover_the_battery_cases(quick_rows):
     _assert_cases(quick_rows)
 
@@ -113,7 +113,7 @@ def test_relative_difference():
         cc.relative_difference(np.zeros(2), np.zeros(3))
 
 
-@pytest.mark.extended  # the whole quick battery; the hand-P comparisons stay in the default tier (test_materials)
+@pytest.mark.extended  # the quick battery; hand P vs autodiff stays in test_materials
 def test_format_table(quick_rows):
     rows = quick_rows
     table = cc.format_table(rows)
