@@ -708,16 +708,16 @@ def test_nodal_stress_of_a_linear_field_on_p2_is_exact(tmp_path):
 
 def test_pvd_times_are_rounded_to_the_step():
     # t accumulated as k·h in floating point: 0.30000000000000004, 0.7000000000000001, …
-    from jaxelastic.io.vtk import _time_labels
+    from jaxelastic.io.vtk import time_labels
 
     times, t = [], 0.0
     for _ in range(12):
         times.append(t)
         t += 0.1
-    labels = _time_labels(times)
+    labels = time_labels(times)
     assert labels[3] == "0.3" and labels[7] == "0.7" and labels[11] == "1.1"
     assert all(len(s) <= 4 for s in labels)
-    assert _time_labels([1.0, 1.0 + 1e-14]) == ["1.0", repr(1.0 + 1e-14)]  # kept apart
+    assert time_labels([1.0, 1.0 + 1e-14]) == ["1.0", repr(1.0 + 1e-14)]  # kept apart
 
 
 @pytest.mark.slow

@@ -1,7 +1,8 @@
 """The library imports and solves without its host-only dependencies (a lean GPU image).
 
 A subprocess installs a ``sys.meta_path`` finder that refuses every host-only package
-(pyamg, pypardiso, mkl, cholespy, scikit-sparse, matplotlib, tqdm, gmsh) before anything
+(pyamg, pypardiso, mkl, cholespy, scikit-sparse, matplotlib, tqdm, gmsh, and the
+partitioner and XDMF reader of the extras, pymetis and h5py) before anything
 is imported, then imports jaxelastic, solves with the device CG and with ``linear="auto"``
 (which must fall back to the device multigrid with one warning) and checks that none of
 the refused packages was even attempted at import time.
@@ -14,7 +15,18 @@ import textwrap
 
 import pytest
 
-HOST_ONLY = ("pyamg", "pypardiso", "mkl", "cholespy", "sksparse", "matplotlib", "tqdm", "gmsh")
+HOST_ONLY = (
+    "pyamg",
+    "pypardiso",
+    "mkl",
+    "cholespy",
+    "sksparse",
+    "matplotlib",
+    "tqdm",
+    "gmsh",
+    "pymetis",
+    "h5py",
+)
 
 _BLOCKER = """
 import importlib.abc, sys

@@ -460,7 +460,7 @@ def test_amg_chebyshev_smoother():
     dense eigenvalue on every smoothed level, the polynomial damps the error on the
     interval it was built for (|1 − t q(t)| < 1), and the V-cycle is a symmetric positive
     definite preconditioner; a second update warm-starts the estimate."""
-    from jaxelastic.solvers.host.amg import CHEBYSHEV_DEGREE, _chebyshev_coefficients
+    from jaxelastic.solvers.host.amg import CHEBYSHEV_DEGREE, chebyshev_coefficients
 
     mesh, fixed, Ke, md, rhs = _problem("twist")
     host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
@@ -476,7 +476,7 @@ def test_amg_chebyshev_smoother():
         # the interval's top is 1.1 λ_est: recover λ_est from the coefficients' interval
         lo_hi = [lam for lam in np.linspace(0.5, 1.5, 2001) * lam_true]
         err = [
-            np.max(np.abs(c - _chebyshev_coefficients(lam / 30, hi * lam, CHEBYSHEV_DEGREE)))
+            np.max(np.abs(c - chebyshev_coefficients(lam / 30, hi * lam, CHEBYSHEV_DEGREE)))
             for lam, c in ((lam, coeffs) for lam in lo_hi)
         ]
         lam_est = lo_hi[int(np.argmin(err))]
@@ -503,7 +503,7 @@ def test_amg_warm_lanczos_estimate_and_rebuilt_sizes():
     """A refresh re-estimates λ_max(D⁻¹A) by LANCZOS_WARM_STEPS steps from the previous
     Ritz vector, within 2 % below the dense eigenvalue; a rebuild starts the coarse levels
     cold (their stored Ritz vectors, here of other sizes, belong to the old bases)."""
-    from jaxelastic.solvers.host.amg import LANCZOS_WARM_STEPS, _lanczos_max
+    from jaxelastic.solvers.host.amg import LANCZOS_WARM_STEPS, lanczos_max
 
     mesh, fixed, Ke, md, rhs = _problem("twist")
     host = _host(mesh, fixed, "amg", sa_options=dict(max_coarse=10))
@@ -513,7 +513,7 @@ def test_amg_warm_lanczos_estimate_and_rebuilt_sizes():
     A = s._amg_matrix(K2)
     d = A.diagonal()
     lam_true = np.max(np.linalg.eigvalsh((A.toarray() / np.sqrt(d)[:, None]) / np.sqrt(d)))
-    lam, _ = _lanczos_max(A, 1.0 / np.sqrt(d), s._ritz[0], LANCZOS_WARM_STEPS)
+    lam, _ = lanczos_max(A, 1.0 / np.sqrt(d), s._ritz[0], LANCZOS_WARM_STEPS)
     assert 0.98 * lam_true <= lam <= (1.0 + 1e-12) * lam_true, (lam, lam_true)
     s._ritz = [s._ritz[0]] + [v[:-3] for v in s._ritz[1:]]  # as if the sizes had changed
     s.reuse = 1  # the next update rebuilds

@@ -29,7 +29,7 @@ _ARMIJO = 1e-4
 _ROUNDOFF = 1e-12  # predicted decrease below this × loss: no measurable progress possible
 
 
-@functools.cache
+@functools.lru_cache(maxsize=16)  # bounded: keyed by learning rates
 def _named_optimizer(name: str, learning_rate: float):
     import optax
 

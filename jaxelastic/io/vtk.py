@@ -29,7 +29,7 @@ from ..postprocess import stress_fields
 from .files import write_atomic
 from .read import MeshData, MeshIOError
 
-__all__ = ["write_vtu", "TimeSeriesWriter", "contact_point_data"]
+__all__ = ["write_vtu", "TimeSeriesWriter", "contact_point_data", "time_labels"]
 
 
 def _pad3(a: np.ndarray) -> np.ndarray:
@@ -180,7 +180,7 @@ def write_vtu(
     write_atomic(path, lambda tmp: meshio.write(tmp, m, file_format="vtu", compression=compression))
 
 
-def _time_labels(times: list[float]) -> list[str]:
+def time_labels(times: list[float]) -> list[str]:
     """``.pvd`` time stamps: 12 significant digits (``0.7``, not ``0.7000000000000001``),
     the exact ``repr`` for any times that 12 digits would not tell apart."""
     short = [f"{t:.12g}" for t in times]
@@ -291,7 +291,7 @@ class TimeSeriesWriter:
     def _write_pvd(self) -> None:
         root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
         coll = ET.SubElement(root, "Collection")
-        labels = _time_labels([t for t, _ in self.steps])
+        labels = time_labels([t for t, _ in self.steps])
         for label, (_, name) in zip(labels, self.steps, strict=True):
             ET.SubElement(coll, "DataSet", timestep=label, group="", part="0", file=name)
         ET.indent(root)

@@ -48,13 +48,13 @@ def power(c, a):
     return c**a
 
 
-@functools.cache
+@functools.lru_cache(maxsize=64)  # bounded: keyed by user functions
 def _d_c(h: Callable) -> Callable:
     """``∂h/∂c`` as a (cached, hence hashable and stable) scalar function."""
     return jax.grad(h, argnums=0)
 
 
-@functools.cache
+@functools.lru_cache(maxsize=64)  # bounded: keyed by user functions
 def _d_a(h: Callable) -> Callable:
     """``∂h/∂a`` as a (cached, hence hashable and stable) scalar function."""
     return jax.grad(h, argnums=1)

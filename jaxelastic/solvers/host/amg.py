@@ -29,6 +29,8 @@ __all__ = [
     "CHEBYSHEV_INTERVAL",
     "LANCZOS_STEPS",
     "LANCZOS_WARM_STEPS",
+    "lanczos_max",
+    "chebyshev_coefficients",
 ]
 
 
@@ -252,9 +254,9 @@ class AMGSolver:
             dinv = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)
             v0 = self._ritz[i] if warm else _lanczos_start(A.shape[0])
             steps = LANCZOS_WARM_STEPS if warm else LANCZOS_STEPS
-            lam, v = _lanczos_max(A, np.sqrt(dinv), v0, steps)
+            lam, v = lanczos_max(A, np.sqrt(dinv), v0, steps)
             lo, hi = CHEBYSHEV_INTERVAL
-            cheb.append((dinv, _chebyshev_coefficients(lo * lam, hi * lam, CHEBYSHEV_DEGREE)))
+            cheb.append((dinv, chebyshev_coefficients(lo * lam, hi * lam, CHEBYSHEV_DEGREE)))
             ritz.append(v)
         self._cheb, self._ritz = cheb, ritz
         self._cheb_of = [level.A for level in ml.levels[:-1]]  # the matrices they are for
@@ -404,7 +406,7 @@ def _lanczos_start(n: int) -> np.ndarray:
     return np.sin(12.9898 * i + 0.5) + 1.5
 
 
-def _lanczos_max(A, s: np.ndarray, v0: np.ndarray, steps: int) -> tuple[float, np.ndarray]:
+def lanczos_max(A, s: np.ndarray, v0: np.ndarray, steps: int) -> tuple[float, np.ndarray]:
     """Largest eigenvalue of ``S A S`` (``S = diag(s)``; SPD ``A``) and its Ritz vector, by
     ``steps`` Lanczos steps from ``v0`` (no reorthogonalisation: only the extreme Ritz
     value is used). The largest eigenvalue of ``SAS`` is that of ``S²A = D⁻¹A``."""
@@ -433,7 +435,7 @@ def _lanczos_max(A, s: np.ndarray, v0: np.ndarray, steps: int) -> tuple[float, n
     return lam, ritz
 
 
-def _chebyshev_coefficients(a: float, b: float, degree: int) -> np.ndarray:
+def chebyshev_coefficients(a: float, b: float, degree: int) -> np.ndarray:
     """Coefficients (highest power first) of ``q`` with ``1 − t q(t)`` the Chebyshev
     polynomial of ``degree`` on ``[a, b]`` scaled to 1 at ``t = 0`` (the smoother
     ``x ← x + q(D⁻¹A) D⁻¹ r`` damps the error by ``1 − t q(t)`` on that interval)."""

@@ -381,7 +381,7 @@ def sharded_preconditioner(
         r = r.astype(dtype)
         if not coarse:  # one level: an exact solve with the replicated factor
             N, at = sh.n_shards * n_own, jax.lax.axis_index(axis) * n_own
-            full = jnp.zeros((N, d), dtype).at[at + jnp.arange(n_own)].set(r)
+            full = jnp.zeros((N, d), dtype).at[at + jnp.arange(n_own, dtype=at.dtype)].set(r)
             y = jax.scipy.linalg.cho_solve((data["L"], True), hl.psum(full).reshape(-1))
             return jax.lax.dynamic_slice_in_dim(y.reshape(N, d), at, n_own)
         assert lv1 is not None
