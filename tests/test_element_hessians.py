@@ -252,7 +252,10 @@ def test_mesh_dtype_is_the_working_dtype():
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-@pytest.mark.parametrize("kind", ["p1", "p2", "composite", "p2-fbar"])
+@pytest.mark.parametrize(
+    "kind",
+    ["p1", *(pytest.param(k, marks=pytest.mark.extended) for k in ("p2", "composite", "p2-fbar"))],
+)
 def test_projection_without_translations_equals_project_psd(dim, kind):
     """``project=True`` projects through the (k−1)·d matrices with the translations taken
     out (``project_element_psd``): equal to ``project_psd`` of the unprojected element

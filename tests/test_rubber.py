@@ -194,10 +194,10 @@ def _solve_F(psi, p, mesh, bc):
     return F
 
 
-def _one_fast(names, fast):
-    """Parameters with all but ``fast`` marked slow (each through-solver case compiles a
+def _one_fast(names, fast, mark=pytest.mark.slow):
+    """Parameters with all but ``fast`` marked ``mark`` (each through-solver case compiles a
     Newton solver of its own: ~20 s apiece on 2 cores)."""
-    return [n if n == fast else pytest.param(n, marks=pytest.mark.slow) for n in names]
+    return [n if n == fast else pytest.param(n, marks=mark) for n in names]
 
 
 @pytest.mark.parametrize("name", _one_fast(NAMES, "mooney_rivlin"))
@@ -700,7 +700,7 @@ def test_scene_fibre_errors_name_key_and_file(tmp_path):
             load_scene("fibre_block", overrides=ov)
 
 
-@pytest.mark.parametrize("name", RUBBER)
+@pytest.mark.parametrize("name", _one_fast(RUBBER, "mooney_rivlin", pytest.mark.extended))
 def test_usable_with_f_bar(name):
     """F-bar is generic: under a homogeneous deformation (J uniform in every cell) the F-bar
     energy equals the standard one; under a non-uniform one both are finite and differ, and
