@@ -1,6 +1,5 @@
-"""Test configuration: float64 everywhere and strict rank promotion (as equinox does),
-4 host CPU devices for the sharding tests (tests/test_sharding.py), and XLA's CPU back end
-at optimisation level 0 (faster compilation; see below).
+"""Test configuration: float64 everywhere, strict rank and dtype promotion (as equinox
+does), and 4 host CPU devices for the sharding tests (tests/test_sharding.py).
 
 ``--xla_force_host_platform_device_count=4`` must be in ``XLA_FLAGS`` before jax is
 imported. It changes nothing for single-device code (every array still lives on device 0
@@ -13,16 +12,6 @@ import os
 _FLAG = "--xla_force_host_platform_device_count"
 if _FLAG not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + f" {_FLAG}=4").strip()
-
-# XLA's CPU back end without LLVM's optimisation passes: the tests are dominated by XLA
-# compilation of small programs (tests/test_newton.py in one process: 70 of 98 s in
-# backend compilation), and at level 0 the file runs in 79 s instead of 99 s (2-core
-# x86-64, 2026-12-04). Results can differ in the last bits (without optimisation LLVM does
-# not contract a*b + c into fused multiply-adds); no test compares bits across the two. The
-# benchmarks in scripts/ and the library itself keep XLA's default.
-_OPT = "--xla_backend_optimization_level"
-if _OPT not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + f" {_OPT}=0").strip()
 
 # The CLI's persistent compilation cache (jaxelastic.cli.cache_dir) goes to one temporary
 # directory per test session (set by the controller, inherited by the xdist workers and by
