@@ -31,6 +31,7 @@ from . import parallel as parallel
 from . import postprocess as postprocess
 from . import solvers as solvers
 from . import verification as verification
+from .deprecation import moved_attributes
 from .dynamics import Integrator as Integrator
 from .dynamics import simulate as simulate
 from .fitting import fit as fit
@@ -123,55 +124,47 @@ __all__ = [
 __version__ = "0.1.0"
 
 
-def _old_element_forces(psi, x, mesh, params):
-    """The former top-level ``element_forces``: the per-element energy *gradients*
-    ``+∂E_c/∂x_a`` (:func:`jaxelastic.mechanics.element_gradients`)."""
-    return mechanics.element_gradients(psi, x, mesh, params)
-
-
 _MOVED = {
-    # name: (object, what to write instead)
-    "lame": (materials.lame, "je.Lame.from_E_nu(E, nu) (or je.materials.lame for the tuple)"),
-    "project_psd": (mechanics.project_psd, "je.mechanics.project_psd"),
-    "svd_rv": (kinematics.svd_rv, "je.kinematics.svd_rv"),
-    "polar": (kinematics.polar, "je.kinematics.polar"),
+    # name: (where it is now, what to write instead)
+    "lame": (
+        "jaxelastic.materials:lame",
+        "je.Lame.from_E_nu(E, nu) (or je.materials.lame for the tuple)",
+    ),
+    "project_psd": ("jaxelastic.mechanics:project_psd", "je.mechanics.project_psd"),
+    "svd_rv": ("jaxelastic.mechanics.kinematics:svd_rv", "je.kinematics.svd_rv"),
+    "polar": ("jaxelastic.mechanics.kinematics:polar", "je.kinematics.polar"),
     "deformation_gradients": (
-        kinematics.deformation_gradients,
+        "jaxelastic.mechanics.kinematics:deformation_gradients",
         "je.kinematics.deformation_gradients",
     ),
-    "assemble": (mechanics.assemble, "je.mechanics.assemble"),
-    "energy_densities": (mechanics.energy_densities, "je.mechanics.energy_densities"),
-    "hvp": (mechanics.hvp, "je.mechanics.hvp"),
-    "element_hessians": (mechanics.element_hessians, "je.mechanics.element_hessians"),
+    "assemble": ("jaxelastic.mechanics:assemble", "je.mechanics.assemble"),
+    "energy_densities": ("jaxelastic.mechanics:energy_densities", "je.mechanics.energy_densities"),
+    "hvp": ("jaxelastic.mechanics:hvp", "je.mechanics.hvp"),
+    "element_hessians": ("jaxelastic.mechanics:element_hessians", "je.mechanics.element_hessians"),
+    # the former top-level element_forces returned the per-element gradients, +dE/dx
     "element_forces": (
-        _old_element_forces,
+        "jaxelastic.mechanics:element_gradients",
         "je.mechanics.element_gradients for these values (+dE/dx per element), or "
         "je.mechanics.element_forces for -dE/dx, the sign of je.forces",
     ),
-    "Partition": (parallel.Partition, "je.parallel.Partition"),
-    "potential": (mechanics.potential, "je.mechanics.potential"),
-    "sharding": (parallel.sharding, "je.parallel.sharding"),
-    "distributed": (parallel.distributed, "je.parallel.distributed"),
-    "reference": (materials.reference, "je.materials.reference"),
-    "rubber": (materials.rubber, "je.materials.rubber (or je.materials.mooney_rivlin, ...)"),
-    "fibres": (materials.fibres, "je.materials.fibres"),
-    "spectral": (materials.spectral, "je.materials.spectral"),
-    "fusion": (mechanics.fusion, "je.mechanics.fusion"),
-    "benchmarks": (verification, "je.verification"),
-    "crosscheck": (verification.derivative_check, "je.verification.derivative_check"),
+    "Partition": ("jaxelastic.parallel:Partition", "je.parallel.Partition"),
+    "potential": ("jaxelastic.mechanics.potential", "je.mechanics.potential"),
+    "sharding": ("jaxelastic.parallel.sharding", "je.parallel.sharding"),
+    "distributed": ("jaxelastic.parallel.distributed", "je.parallel.distributed"),
+    "reference": ("jaxelastic.materials.reference", "je.materials.reference"),
+    "rubber": (
+        "jaxelastic.materials.rubber",
+        "je.materials.rubber (or je.materials.mooney_rivlin, ...)",
+    ),
+    "fibres": ("jaxelastic.materials.fibres", "je.materials.fibres"),
+    "spectral": ("jaxelastic.materials.spectral", "je.materials.spectral"),
+    "fusion": ("jaxelastic.mechanics.fusion", "je.mechanics.fusion"),
+    "benchmarks": ("jaxelastic.verification", "je.verification"),
+    "crosscheck": (
+        "jaxelastic.verification.derivative_check",
+        "je.verification.derivative_check",
+    ),
 }
 
-
-def __getattr__(name: str):
-    """Names that moved into their packages still resolve, with a DeprecationWarning."""
-    if name in _MOVED:
-        import warnings
-
-        obj, instead = _MOVED[name]
-        warnings.warn(
-            f"je.{name} is deprecated and will be removed: use {instead}",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return obj
-    raise AttributeError(f"module 'jaxelastic' has no attribute {name!r}")
+# names that moved into their packages still resolve, with a DeprecationWarning
+__getattr__ = moved_attributes(__name__, "je", _MOVED)

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .deprecation import moved_attributes
 from .mesh import Mesh, boundary_facets
 from .mesh.elements import Element, facet_rule
 
@@ -386,24 +387,13 @@ def gravity_load(mesh: Mesh, density, g, *, consistent: bool = False) -> np.ndar
     )
 
 
-_MOVED = ("reaction_force", "facet_tractions")
-"""Reactions and facet tractions moved to :mod:`jaxelastic.postprocess`; the old names
-still resolve."""
-
-
-def __getattr__(name: str):
-    """``loads.reaction_force`` and ``loads.facet_tractions``, with a DeprecationWarning."""
-    if name in _MOVED:
-        import importlib
-        import warnings
-
-        warnings.warn(
-            f"jaxelastic.loads.{name} is deprecated and will be removed: use "
-            f"jaxelastic.postprocess.{name}",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        # by name, at attribute access only: a forward of a deprecated name, not a
-        # dependency of the loads on the (higher) post-processing layer
-        return getattr(importlib.import_module("jaxelastic.postprocess"), name)
-    raise AttributeError(f"module 'jaxelastic.loads' has no attribute {name!r}")
+# reactions and facet tractions moved to jaxelastic.postprocess (a higher layer: the
+# forward imports it by name, on access only); the old names still resolve
+__getattr__ = moved_attributes(
+    __name__,
+    "jaxelastic.loads",
+    {
+        n: (f"jaxelastic.postprocess:{n}", f"jaxelastic.postprocess.{n}")
+        for n in ("reaction_force", "facet_tractions")
+    },
+)

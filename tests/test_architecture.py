@@ -355,7 +355,7 @@ def test_scanner_catches_violations(tmp_path, monkeypatch):
 
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("jaxelastic.mesh",),
+    ("jaxelastic.deprecation", "jaxelastic.mesh"),
     ("jaxelastic.mechanics",),
     ("jaxelastic.materials",),
     ("jaxelastic.loads", "jaxelastic.contact", "jaxelastic.parallel"),
@@ -372,7 +372,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
 stands for every module under it, the most specific entry wins). A module may import only
 from its own layer or a lower one.
 
-The order is the import graph's: the mesh knows nothing above it; the mechanics kernels,
+The order is the import graph's: the mesh, and the forward of moved names
+(:mod:`jaxelastic.deprecation`, which imports its targets by name on access), know nothing
+above them; the mechanics kernels,
 kinematics and the potential need only the mesh; the material laws use kinematics and the
 parameter checks; loads, contact and the parallel layout build on the potential;
 post-processing uses the loads' facet geometry, and the VTU writer the post-processing;
@@ -561,6 +563,16 @@ def test_layer_and_naming_checks_catch_violations(tmp_path, monkeypatch):
     assert missing_dunder_all() == [f"{PACKAGE}/stray.py: no __all__"]
 
 
+def _fresh_python(code: str) -> subprocess.CompletedProcess:
+    """``code`` run by a fresh interpreter on the CPU, without the JAX_* variables of the
+    test run's environment (x64 among them)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
+    env["JAX_PLATFORMS"] = "cpu"
+    return subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
+    )
+
+
 def test_import_does_not_flip_x64():
     code = (
         "import jax\n"
@@ -570,16 +582,7 @@ def test_import_does_not_flip_x64():
         "assert before is False, 'x64 already on before the import'\n"
         "assert after == before, f'import jaxelastic flipped jax_enable_x64 to {after}'\n"
     )
-    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
-    env.setdefault("JAX_PLATFORMS", "cpu")
-    r = subprocess.run(
-        [sys.executable, "-c", code],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = _fresh_python(code)
     assert r.returncode == 0, r.stderr[-3000:]
 
 
@@ -595,16 +598,7 @@ def test_import_starts_no_jax_runtime():
         "import jaxelastic, jaxelastic.cli, jaxelastic.scene, jaxelastic.fitting\n"
         "import jaxelastic.parallel, jaxelastic.verification, jaxelastic.dynamics\n"
     )
-    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
-    env["JAX_PLATFORMS"] = "cpu"
-    r = subprocess.run(
-        [sys.executable, "-c", code],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = _fresh_python(code)
     assert r.returncode == 0, r.stderr[-3000:]
 
 

@@ -10,6 +10,7 @@
 The stresses written with a state are computed by :mod:`jaxelastic.postprocess`.
 """
 
+from ..deprecation import moved_attributes
 from . import files as files
 from . import read as read
 from . import vtk as vtk
@@ -38,22 +39,12 @@ __all__ = [
     "write_vtu",
 ]
 
-_MOVED = ("cell_fields", "nodal_stress", "stress_fields")
-"""Stress recovery moved to :mod:`jaxelastic.postprocess`; the old names still resolve."""
-
-
-def __getattr__(name: str):
-    """``jaxelastic.io.cell_fields`` and friends, with a DeprecationWarning."""
-    if name in _MOVED:
-        import warnings
-
-        from .. import postprocess
-
-        warnings.warn(
-            f"jaxelastic.io.{name} is deprecated and will be removed: use "
-            f"jaxelastic.postprocess.{name}",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(postprocess, name)
-    raise AttributeError(f"module 'jaxelastic.io' has no attribute {name!r}")
+# stress recovery moved to jaxelastic.postprocess; the old names still resolve
+__getattr__ = moved_attributes(
+    __name__,
+    "jaxelastic.io",
+    {
+        n: (f"jaxelastic.postprocess:{n}", f"jaxelastic.postprocess.{n}")
+        for n in ("cell_fields", "nodal_stress", "stress_fields")
+    },
+)

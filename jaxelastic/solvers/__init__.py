@@ -6,6 +6,7 @@ table, the one CG) → ``newton`` (settings, state, the one loop) → ``adjoint`
 → ``continuation`` (load stepping on solve).
 """
 
+from ..deprecation import moved_attributes
 from .adjoint import X_STAR as X_STAR
 from .adjoint import GradientError as GradientError
 from .adjoint import ImplicitAdjoint as ImplicitAdjoint
@@ -70,18 +71,13 @@ __all__ = [
     "Status",
 ]
 
-_DEPRECATED = {"contact_potential": ("solved_potential", solved_potential)}
-
-
-def __getattr__(name: str):
-    if name in _DEPRECATED:
-        import warnings
-
-        new, obj = _DEPRECATED[name]
-        warnings.warn(
-            f"je.solvers.{name} is deprecated: use je.solvers.{new} (same arguments)",
-            DeprecationWarning,
-            stacklevel=2,
+__getattr__ = moved_attributes(
+    __name__,
+    "je.solvers",
+    {
+        "contact_potential": (
+            "jaxelastic.solvers.newton:solved_potential",
+            "je.solvers.solved_potential (same arguments)",
         )
-        return obj
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    },
+)

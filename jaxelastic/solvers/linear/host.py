@@ -92,6 +92,17 @@ def _host_apply(backend: HostLinearSolver, r, token):
     return jax.pure_callback(backend.apply, out, r, token, vmap_method="sequential")
 
 
+def _host_preconditioner(backend: HostLinearSolver, free, token):
+    """``r ↦`` the host factorisation's (or AMG hierarchy's) solve of ``r``, zero on the
+    Dirichlet dofs: the preconditioner of the device CG that ``token`` orders after the
+    factorisation it names."""
+
+    def M(r):
+        return jnp.where(free, _host_apply(backend, r, token), 0.0)
+
+    return M
+
+
 def _host_factor_solve(backend: HostLinearSolver, Ke, md, r, token):
     out = (jax.ShapeDtypeStruct(r.shape, r.dtype), jax.ShapeDtypeStruct((), jnp.int32))
     data = _upper_data(backend, Ke)
@@ -182,9 +193,7 @@ class HostSolver(LinearSolver):
         tol = rtol * bn
         free = system.free
 
-        def M0(r):
-            return jnp.where(free, _host_apply(backend, r, jnp.asarray(0, jnp.int32)), 0.0)
-
+        M0 = _host_preconditioner(backend, free, jnp.asarray(0, jnp.int32))
         first = cg(system.A, b, M0, tol=tol, max_iter=min(self.reuse_iter, max_iter))
         y0 = jnp.where(jnp.all(jnp.isfinite(first.x)), first.x, 0.0)
 
@@ -194,9 +203,7 @@ class HostSolver(LinearSolver):
         need = first.status != Status.SUCCESS
         token = _host_factor_if(backend, system.Ke, mass_or_zeros(system), need)
 
-        def M1(r):
-            return jnp.where(free, _host_apply(backend, r, token), 0.0)
-
+        M1 = _host_preconditioner(backend, free, token)
         res = cg(system.A, b, M1, tol=tol, max_iter=max_iter, x0=y0)  # 0 its if done
         its = res.stats["iterations"] + first.stats["iterations"]
         return res._replace(stats=dict(res.stats, iterations=its))
@@ -232,8 +239,7 @@ class Direct(HostSolver):
             # Hessian: the factorisation of the element part preconditions CG on A
             token = _host_factor(backend, Ke, md, token)
 
-            def M(r):
-                return jnp.where(system.free, _host_apply(backend, r, token), 0.0)
+            M = _host_preconditioner(backend, system.free, token)
 
             res = cg(A, rhs, M, tol=tol, max_iter=2000)
             st = jnp.where(token == Status.NOT_POSITIVE_DEFINITE, token, res.status)
@@ -288,8 +294,7 @@ class AMG(HostSolver):
             return _no_vmap_callback(fn, out, data, md, rhs, tol, max_iter, token)
         token = _host_factor(backend, Ke, md, token)
 
-        def M(r):
-            return jnp.where(system.free, _host_apply(backend, r, token), 0.0)
+        M = _host_preconditioner(backend, system.free, token)
 
         res = cg(A, rhs, M, tol=tol, max_iter=self.max_iter)
         st = jnp.where(token == Status.NOT_POSITIVE_DEFINITE, token, res.status)
