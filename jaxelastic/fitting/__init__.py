@@ -9,7 +9,8 @@
   :class:`TrajectoryCase`;
 * :mod:`~jaxelastic.fitting.objective`: the compiled objective in unconstrained variables;
 * :mod:`~jaxelastic.fitting.optimization`: :func:`fit` with optax;
-* :mod:`~jaxelastic.fitting.identifiability`: :func:`loss_landscape`, :func:`loss_hessian`.
+* :mod:`~jaxelastic.fitting.identifiability`: :func:`loss_landscape`, :func:`loss_hessian`;
+* :mod:`~jaxelastic.fitting.uncertainty`: :func:`gauss_newton_uncertainty` at an optimum.
 """
 
 from .cases import Case as Case
@@ -39,6 +40,8 @@ from .transforms import Fixed as Fixed
 from .transforms import Free as Free
 from .transforms import Positive as Positive
 from .transforms import Transform as Transform
+from .uncertainty import Uncertainty as Uncertainty
+from .uncertainty import gauss_newton_uncertainty as gauss_newton_uncertainty
 
 __all__ = [
     "Case",
@@ -68,4 +71,6 @@ __all__ = [
     "Free",
     "Positive",
     "Transform",
+    "Uncertainty",
+    "gauss_newton_uncertainty",
 ]
