@@ -13,6 +13,9 @@ only: nothing here solves (``je.solve(b.pot, b.bc)`` does).
   :func:`affine_patch`.
 * Homogeneous states (:mod:`~jaxelastic.verification.homogeneous`): :func:`uniaxial_tension`,
   :func:`simple_shear`.
+* Treloar's (1944) rubber data (:mod:`~jaxelastic.verification.treloar`):
+  :data:`TRELOAR_UNIAXIAL`, :data:`TRELOAR_EQUIBIAXIAL`, :data:`TRELOAR_PURE_SHEAR`
+  (stretch [-], nominal stress [MPa]).
 * The JAX-FEM twist (:mod:`~jaxelastic.verification.torsion`): :func:`twist`.
 * The autodiff cross-check (:mod:`~jaxelastic.verification.derivative_check`):
   :func:`crosscheck`, autodiff stress, forces and HVPs against the hand-derived P of
@@ -50,6 +53,11 @@ from .problem import node_at as node_at
 from .torsion import TWIST_THETA as TWIST_THETA
 from .torsion import twist as twist
 from .torsion import twist_displacement as twist_displacement
+from .treloar import TRELOAR as TRELOAR
+from .treloar import TRELOAR_EQUIBIAXIAL as TRELOAR_EQUIBIAXIAL
+from .treloar import TRELOAR_PURE_SHEAR as TRELOAR_PURE_SHEAR
+from .treloar import TRELOAR_UNIAXIAL as TRELOAR_UNIAXIAL
+from .treloar import TreloarCurve as TreloarCurve
 
 __all__ = [
     "derivative_check",
@@ -82,4 +90,9 @@ __all__ = [
     "twist",
     "twist_displacement",
     "crosscheck",
+    "TRELOAR",
+    "TRELOAR_EQUIBIAXIAL",
+    "TRELOAR_PURE_SHEAR",
+    "TRELOAR_UNIAXIAL",
+    "TreloarCurve",
 ]
