@@ -10,7 +10,11 @@
 * :mod:`~jaxelastic.fitting.objective`: the compiled objective in unconstrained variables;
 * :mod:`~jaxelastic.fitting.optimization`: :func:`fit` with optax;
 * :mod:`~jaxelastic.fitting.identifiability`: :func:`loss_landscape`, :func:`loss_hessian`;
-* :mod:`~jaxelastic.fitting.uncertainty`: :func:`gauss_newton_uncertainty` at an optimum.
+* :mod:`~jaxelastic.fitting.uncertainty`: :func:`gauss_newton_uncertainty` at an optimum;
+* :mod:`~jaxelastic.fitting.least_squares`: :func:`levenberg_marquardt` for few parameters;
+* :mod:`~jaxelastic.fitting.homogeneous`: uniaxial, equibiaxial, pure-shear and simple-shear
+  stress of any ψ without a mesh (:func:`nominal_stress`), and :func:`fit_curves` of
+  measured test curves (:func:`stress_curve`).
 """
 
 from .cases import Case as Case
@@ -43,6 +47,21 @@ from .transforms import Transform as Transform
 from .uncertainty import Uncertainty as Uncertainty
 from .uncertainty import gauss_newton_uncertainty as gauss_newton_uncertainty
 
+# isort: split
+# homogeneous test curves and their least-squares fit
+from .homogeneous import TESTS as TESTS
+from .homogeneous import CurveFit as CurveFit
+from .homogeneous import FreeStretchNewton as FreeStretchNewton
+from .homogeneous import HomogeneousResponse as HomogeneousResponse
+from .homogeneous import StressCurve as StressCurve
+from .homogeneous import fit_curves as fit_curves
+from .homogeneous import homogeneous_deformation as homogeneous_deformation
+from .homogeneous import nominal_stress as nominal_stress
+from .homogeneous import stress_curve as stress_curve
+from .least_squares import LeastSquaresResult as LeastSquaresResult
+from .least_squares import LMSettings as LMSettings
+from .least_squares import levenberg_marquardt as levenberg_marquardt
+
 __all__ = [
     "Case",
     "CaseAux",
@@ -73,4 +92,17 @@ __all__ = [
     "Transform",
     "Uncertainty",
     "gauss_newton_uncertainty",
+    # homogeneous test curves and their least-squares fit
+    "TESTS",
+    "CurveFit",
+    "FreeStretchNewton",
+    "HomogeneousResponse",
+    "StressCurve",
+    "fit_curves",
+    "homogeneous_deformation",
+    "nominal_stress",
+    "stress_curve",
+    "LeastSquaresResult",
+    "LMSettings",
+    "levenberg_marquardt",
 ]
