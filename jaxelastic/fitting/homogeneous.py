@@ -169,7 +169,8 @@ def _newton_solve(newton: FreeStretchNewton):
 
         init = (s0, jnp.asarray(False), jnp.zeros((), jnp.int32), jnp.asarray(False))
         s, done, _, _ = jax.lax.while_loop(cond, step, init)
-        return s, done
+        return s, jnp.where(done, 1.0, 0.0).astype(s.dtype)  # a float aux: custom_root's
+        # JVP gives a boolean aux a boolean tangent, which JAX then refuses
 
     return solve
 
@@ -196,7 +197,7 @@ def _compressible_point(psi, params, code, lam, newton: FreeStretchNewton):
     b = jnp.exp(s)
     w, G = jax.value_and_grad(psi)(_deformation(code, lam, b), params)
     P = jnp.where(shear, G[0, 1], G[0, 0])
-    return P, b, done & jnp.isfinite(w) & jnp.isfinite(P)
+    return P, b, (done > 0.5) & jnp.isfinite(w) & jnp.isfinite(P)
 
 
 @functools.partial(jax.jit, static_argnames=("psi", "incompressible", "newton"))

@@ -79,7 +79,7 @@ class LeastSquaresResult(NamedTuple):
     Attributes:
         z: ``(p,)`` final unconstrained vector.
         params: ``(p,)`` physical parameters θ = ``physical(z)`` (``z`` itself by default).
-        residuals: ``(m,)`` weighted residuals at ``z``.
+        residuals: ``(m,)`` weighted residuals at ``z`` (NaN when ``"nonfinite"``).
         cost: ``½‖r‖²``.
         jacobian: ``(m, p)`` ``∂r/∂θ`` at ``z`` (physical units).
         predicted_decrease: the undamped Gauss–Newton predicted decrease divided by the cost
@@ -260,6 +260,9 @@ def levenberg_marquardt(
     s, theta, J_theta = jax.device_get((s, theta, J_theta))
     wall = time.perf_counter() - tic
     status = int(s.status)
+    if status == _NONFINITE:  # nothing was evaluated successfully: no residuals to report
+        s = s._replace(r=np.full_like(s.r, np.nan))
+        J_theta = np.full_like(J_theta, np.nan)
     finite = bool(np.all(np.isfinite(s.r)) and np.all(np.isfinite(J_theta)))
     unc = gauss_newton_uncertainty(J_theta, s.r, known_sigma=known_sigma) if finite else None
     cost = float(s.cost)
