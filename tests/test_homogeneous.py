@@ -355,3 +355,23 @@ def test_a_model_undefined_at_the_initial_guess_is_refused():
     c = stress_curve("uniaxial", TRELOAR_UNIAXIAL.stretch, TRELOAR_UNIAXIAL.stress)
     with pytest.raises(ValueError, match="not finite at the initial parameters"):
         fit_curves(M.gent, M.gent_params(Jm=20.0), [c])  # Ī₁ − 3 reaches 55 > J_m
+
+
+@pytest.mark.extended
+def test_report_script_writes_its_table(tmp_path):
+    import importlib
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    report = importlib.import_module("report_treloar")
+    out = tmp_path / "out"
+    assert report.main(["--models", "mooney_rivlin", "--no-plot", "--out", str(out)]) == 0
+    rows = json.loads((out / "report_treloar.json").read_text())["fits"]
+    assert [r["fitted_on"] for r in rows] == ["joint", "uniaxial"]
+    assert all(r["converged"] for r in rows)
+    joint = rows[0]["rms_relative_error"]
+    assert set(joint) == {"uniaxial", "equibiaxial", "pure_shear"}
+    assert rows[1]["rms_relative_error"]["equibiaxial"] > 5 * joint["equibiaxial"]
+    assert "| Mooney–Rivlin | all three |" in (out / "treloar_table.md").read_text()
