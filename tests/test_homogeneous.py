@@ -315,6 +315,29 @@ def test_compressible_fit_at_large_kappa_approaches_the_incompressible_one():
         np.testing.assert_allclose(comp.values[k], inc.values[k], rtol=1e-3)
 
 
+@pytest.mark.extended
+def test_compressible_fit_recovers_the_bulk_modulus_from_synthetic_data():
+    true = M.mooney_rivlin_params(c10=0.2, c01=0.05, kappa=2.0)  # soft in bulk: κ informed
+    lam, g = np.linspace(1.1, 3.0, 10), np.linspace(0.1, 1.0, 5)
+    curves = [
+        stress_curve(
+            t, a, nominal_stress(M.mooney_rivlin, true, t, a, incompressible=False).stress, 1e-3
+        )
+        for t, a in (("uniaxial", lam), ("equibiaxial", lam), ("simple_shear", g))
+    ]
+    fit = fit_curves(
+        M.mooney_rivlin,
+        M.mooney_rivlin_params(kappa=5.0),
+        curves,
+        fields=("c10", "c01", "kappa"),
+        incompressible=False,
+        known_sigma=True,
+    )
+    assert fit.converged and fit.names == ("c10", "c01", "kappa")
+    np.testing.assert_allclose([fit.values[k] for k in fit.names], [0.2, 0.05, 2.0], rtol=1e-8)
+    assert 0 < fit.standard_errors["kappa"] < 0.1
+
+
 # ------------------------------------------------------------------------- bad inputs
 def test_bad_curves_are_refused_with_the_row():
     with pytest.raises(ValueError, match="unknown test 'biaxial'"):
