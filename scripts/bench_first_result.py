@@ -243,16 +243,21 @@ def _fit(clock: _Clock) -> None:
     bottom = L.nodes_on_plane(mesh, 1, 0.0)
     origin = np.flatnonzero(np.all(np.isclose(X, 0.0), axis=1))
     top = L.facets_where(mesh, lambda c: np.isclose(c[:, 1], 1.0))
-    bcs = [L.combine(L.fix(mesh, bottom, components=(1,)), L.fix(mesh, origin)), L.fix(mesh, bottom)]
+    bcs = [
+        L.combine(L.fix(mesh, bottom, components=(1,)), L.fix(mesh, origin)),
+        L.fix(mesh, bottom),
+    ]
     fs = [jnp.asarray(L.traction_load(mesh, top, t)) for t in ((0.0, 0.6), (0.3, 0.0))]
     truth = MR(c10=0.4, c01=0.1, kappa=5.0)
     psi = je.materials.mooney_rivlin
     cases = []
-    for bc, f in zip(bcs, fs):
+    for bc, f in zip(bcs, fs, strict=True):
         pot = je.Potential(mesh=mesh, params=truth, f_ext=f, psi=psi)
         cases.append(LoadCase(pot=pot.replace(params=None), bc=bc, observed=je.solve(pot, bc).x))
     clock.marks["to_targets"] = time.time()
-    res = fit(cases, MR(0.2, 0.3, 5.0), transforms=MR(Positive(), Positive(), Fixed()), max_iter=100)
+    res = fit(
+        cases, MR(0.2, 0.3, 5.0), transforms=MR(Positive(), Positive(), Fixed()), max_iter=100
+    )
     print(res.params, res.iterations, res.stop_reason)
     clock.marks["to_fit"] = time.time()
 
@@ -313,7 +318,10 @@ def run_case(case: str, cache: str, tmp: str, bracket: str | None) -> dict:
     out = os.path.join(tmp, f"out_{case}")
     cmd = [sys.executable, __file__, "--_child", case, result, "--", *_argv(case, out, bracket)]
     env = dict(os.environ, JAXELASTIC_CACHE_DIR=cache)
-    with open(os.path.join(tmp, "stdout"), "w+") as fo, open(os.path.join(tmp, "stderr"), "w+") as fe:
+    with (
+        open(os.path.join(tmp, "stdout"), "w+") as fo,
+        open(os.path.join(tmp, "stderr"), "w+") as fe,
+    ):
         t0 = time.perf_counter()
         env["BENCH_SPAWN_EPOCH"] = repr(time.time())
         p = subprocess.Popen(cmd, env=env, cwd=tmp, stdout=fo, stderr=fe)
@@ -390,7 +398,8 @@ def main(argv=None) -> int:
         )
     _print(rows)
     result = dict(
-        machine=f"{os.cpu_count()} cores, {platform.platform()}, python {platform.python_version()}",
+        machine=f"{os.cpu_count()} cores, {platform.platform()}, "
+        f"python {platform.python_version()}",
         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         load_average=[load0, os.getloadavg()],
         label=a.label,
