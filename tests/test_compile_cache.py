@@ -7,6 +7,7 @@ test asks for a second run at most 80 % of the first (CPU time of the child proc
 steadier than wall time on a shared machine).
 """
 
+import functools
 import os
 import re
 import subprocess
@@ -103,6 +104,66 @@ def test_dynamic_scene_compiles_one_newton_solve(tmp_path):
     assert summary["dynamic"]["steps"] == 5
     for name in NEWTON + STEP:
         assert compiles[f"jit({name})"] == 1, (name, dict(compiles))
+
+
+def test_solve_and_gradient_compile_each_piece_once():
+    """The README pattern on a small beam: the plain solve compiles each Newton piece once;
+    a solve at a new load or parameter value compiles nothing; the eager gradient reuses
+    the solve's pieces and adds two small ones that hold no host callback (so the
+    persistent cache keeps them: never the traced adjoint ``_cotangents``); a second
+    gradient compiles nothing; ``je.forces`` outside jit is one program. Counted with
+    ``jax.monitoring`` (each compilation or persistent-cache load is one event), so the
+    test does not depend on the machine's load."""
+    import jax.numpy as jnp
+    from jax import monitoring
+
+    import jaxelastic as je
+    from jaxelastic import loads
+
+    events: list[str] = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            events.append(str(kw.get("fun_name", "")))
+
+    mesh = je.rectangle(4, 1, size=(2.0, 0.5))  # 2D: the same pieces, compiled faster
+    clamp = loads.fix(mesh, loads.nodes_on_plane(mesh, 0, 0.0))
+    g = jnp.asarray(loads.gravity_load(mesh, density=1000.0, g=[0, -9.81]))
+    psi = je.materials.neo_hookean
+    lame = functools.partial(je.Lame.from_E_nu, dim=2)
+    pot = je.Potential(mesh=mesh, params=lame(1e6, 0.3), f_ext=g, psi=psi)
+    params2 = lame(2e6, 0.3)
+    jax.clear_caches()
+    monitoring.register_event_duration_secs_listener(listen)
+    try:
+        je.forces(psi, mesh.points, mesh, pot.params)
+        forces = list(events)
+        je.solve(pot, clamp)
+        first = list(events)
+        je.solve(pot.replace(f_ext=2.0 * g, params=params2), clamp)
+        second = events[len(first) :]
+
+        def tip(E):
+            p = lame(E, jnp.asarray(0.3))
+            return je.solve(pot.replace(params=p), clamp).x[:, 1].min()
+
+        grad = jax.grad(tip)
+        grad(jnp.asarray(1e6))
+        n_grad = len(events)
+        grad(jnp.asarray(3e6))
+        regrad = events[n_grad:]
+        in_grad = Counter(events[len(first) : n_grad])
+    finally:
+        monitoring.unregister_event_duration_listener(listen)
+    assert forces == ["jit(_nodal_forces)"], forces
+    counts = Counter(first)
+    for name in (*NEWTON, "_upper"):
+        assert counts[f"jit({name})"] == 1, (name, counts)
+    assert not [e for e in second if e.startswith("jit(_")], second
+    assert not [e for e in regrad if e.startswith("jit(_")], regrad
+    for name in (*NEWTON, "_upper", "_cotangents"):
+        assert in_grad[f"jit({name})"] == 0, (name, in_grad)
+    assert in_grad["jit(_exact_upper)"] == 1 and in_grad["jit(_host_pullback)"] == 1, in_grad
 
 
 if __name__ == "__main__":  # pragma: no cover
