@@ -166,5 +166,38 @@ def test_solve_and_gradient_compile_each_piece_once():
     assert in_grad["jit(_exact_upper)"] == 1 and in_grad["jit(_host_pullback)"] == 1, in_grad
 
 
+_DEFAULT_CACHE_CHILD = """
+import os, sys, jax
+jax.config.update("jax_enable_x64", True)
+import jaxelastic as je
+assert jax.config.jax_compilation_cache_dir is None, "set at import"
+je.rectangle(2, 1)  # the first mesh: the library's default cache, before any compile
+print(jax.config.jax_compilation_cache_dir, jax.config.jax_compilation_cache_max_size)
+"""
+
+
+@pytest.mark.parametrize("switch", ["", "0"])
+def test_library_enables_the_default_cache_lazily(tmp_path, switch):
+    """A fresh process: nothing at import; the first mesh enables JAX's persistent cache
+    in $JAXELASTIC_CACHE_DIR with the size limit (JAX then locks the directory around
+    each read, write and eviction: safe with concurrent processes); JAXELASTIC_CACHE=0
+    leaves it off; a cache the user configured (as this test session does) is kept."""
+    from jaxelastic.cache import cache_max_bytes, ensure_persistent_cache
+
+    assert ensure_persistent_cache() is None  # the session's own cache stays
+    env = dict(os.environ, JAXELASTIC_CACHE_DIR=str(tmp_path / "c"), JAXELASTIC_CACHE=switch)
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    p = subprocess.run(
+        [sys.executable, "-c", _DEFAULT_CACHE_CHILD], env=env, capture_output=True, text=True
+    )
+    assert p.returncode == 0, p.stderr[-2000:]
+    path, size = p.stdout.split()
+    if switch == "0":
+        assert path == "None"
+    else:
+        assert path == str(tmp_path / "c") and int(size) == cache_max_bytes() > 0
+        assert os.path.isdir(path)
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(pytest.main([__file__, "-q", "-n", "0"]))
