@@ -23,6 +23,9 @@ from disk instead (tracing and lowering still run: they make the cache key).
   one is half-way through writing; where ``filelock`` is missing the default cache stays
   off (a cache without the lock could hand a half-written executable to a concurrent
   reader).
+* **Entries written without a size limit** (by JAX elsewhere or an earlier version of this
+  library) get the access-time file the size-limited cache needs when the cache is
+  enabled (:func:`enable_persistent_cache`).
 * **Never cached by JAX**: executables holding a host callback (``jax.pure_callback``), see
   ``docs/guide/compilation.md``.
 """
@@ -104,6 +107,7 @@ def enable_persistent_cache(path: str | None = None, max_bytes: int | None = Non
         )
     path = cache_dir() if path is None else os.path.abspath(os.path.expanduser(path))
     os.makedirs(path, exist_ok=True)
+    _add_access_times(path)
     jax.config.update(
         "jax_compilation_cache_max_size", cache_max_bytes() if max_bytes is None else int(max_bytes)
     )
@@ -112,6 +116,33 @@ def enable_persistent_cache(path: str | None = None, max_bytes: int | None = Non
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
+
+
+def _add_access_times(path: str) -> None:
+    """Give every entry without one an access-time file (its modification time).
+
+    JAX's size-limited cache keeps ``<key>-atime`` next to each ``<key>-cache`` and reads
+    it for every entry whenever it evicts, which it checks at every write; an entry written
+    without a limit (by JAX elsewhere, or an earlier version of this library) has none, and
+    every later write into the directory then fails with a warning. Done under JAX's own
+    lock of the directory."""
+    import filelock
+
+    with filelock.FileLock(os.path.join(path, ".lockfile"), timeout=10):
+        with os.scandir(path) as it:
+            names = {e.name for e in it}
+        for name in names:
+            if not name.endswith("-cache"):
+                continue
+            atime = name[: -len("-cache")] + "-atime"
+            if atime in names:
+                continue
+            try:
+                ns = os.stat(os.path.join(path, name)).st_mtime_ns
+                with open(os.path.join(path, atime), "wb") as f:
+                    f.write(ns.to_bytes(8, "little"))
+            except OSError:
+                continue  # removed meanwhile
 
 
 def ensure_persistent_cache(enable: bool = True) -> str | None:
