@@ -223,24 +223,16 @@ def _element_gradients(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
 
 _MAX_UNROLLED_VALENCE = 256  # above this, gather (n_nodes, valence, d) then sum
 
-UNROLLED_MIN_SLOTS = 1 << 17
-"""Meshes with fewer element-node slots (``n_cells · nodes per cell``; 32,768 tet4) are
-assembled by one gather of ``(n_nodes, valence, d)`` then a sum, larger ones by the
-unrolled column sum. Both run at the same speed below this size, but the unrolled sum is
-one bounds-checked gather per valence column (48 on a structured tet mesh) in every
-gradient and Hessian-vector product, most of the StableHLO of a compiled Newton step:
-the single gather compiles about 30 % faster (HVP of the 1,920-tet README beam, measured
-on a loaded machine). Above it the unrolled sum is 3–10× faster at 10⁶ cells."""
-
 
 def assemble(mesh, per_element: jax.Array) -> jax.Array:
     """Sum per-element nodal vectors ``(n_cells, k, d)`` into ``(n_nodes, d)``.
 
     Uses the precomputed node→slot incidence table: one gather per valence column, summed
     in column order (XLA fuses them into a single loop with no ``(n_nodes, valence, d)``
-    intermediate); below :data:`UNROLLED_MIN_SLOTS` one gather then a sum. Measured by
-    ``scripts/bench_kernels.py``: 3–6× faster at 10⁵–10⁶ cells
-    than a gather-then-sum, and faster than an unsorted scatter-add on XLA:CPU.
+    intermediate). Measured by ``scripts/bench_kernels.py``: 3–6× faster at 10⁵–10⁶ cells
+    than a gather-then-sum (1.5–1.8× at 2k–30k tets, forces + HVP, interleaved, loaded
+    machine, although a gather-then-sum compiles about 30 % faster there), and faster than
+    an unsorted scatter-add on XLA:CPU.
     """
     if not hasattr(mesh, "incidence") or not hasattr(mesh, "cells"):
         raise TypeError(
@@ -257,8 +249,7 @@ def assemble(mesh, per_element: jax.Array) -> jax.Array:
     c, k, d = per_element.shape
     flat = per_element.reshape(c * k, d)
     inc = mesh.incidence  # (n_nodes, valence); padding entries are c*k (out of range)
-    if inc.shape[1] > _MAX_UNROLLED_VALENCE or c * k < UNROLLED_MIN_SLOTS:
-        # small meshes (compile time) or a fan of many cells around one node
+    if inc.shape[1] > _MAX_UNROLLED_VALENCE:  # e.g. a fan of many cells around one node
         padded = jnp.concatenate([flat, jnp.zeros((1, d), flat.dtype)])
         return padded[inc].sum(axis=1)
     out = flat.at[inc[:, 0]].get(mode="fill", fill_value=0)
