@@ -38,6 +38,7 @@ Usage::
 
     python scripts/bench_first_result.py [--cases readme,default,twist10,twist29,fit]
         [--repeat 3] [--bracket-scene bracket_linear-p1.toml] [--out out/bench/first.json]
+        [--compare ../old-checkout]     # paired: each case before/after, interleaved
 
 The ``jaxelastic`` imported by the children is the one on ``$PYTHONPATH`` (set it to
 another checkout to measure that one with the same script).
@@ -312,12 +313,17 @@ def _argv(case: str, out: str, bracket: str | None) -> list[str]:
     return []
 
 
-def run_case(case: str, cache: str, tmp: str, bracket: str | None) -> dict:
-    """One case in a fresh child process: its split, counts, wall, CPU and peak RSS."""
+def run_case(
+    case: str, cache: str, tmp: str, bracket: str | None, pythonpath: str | None = None
+) -> dict:
+    """One case in a fresh child process: its split, counts, wall, CPU and peak RSS
+    (``pythonpath``: the child's ``$PYTHONPATH``, default this process's)."""
     result = os.path.join(tmp, "result.json")
     out = os.path.join(tmp, f"out_{case}")
     cmd = [sys.executable, __file__, "--_child", case, result, "--", *_argv(case, out, bracket)]
     env = dict(os.environ, JAXELASTIC_CACHE_DIR=cache)
+    if pythonpath is not None:
+        env["PYTHONPATH"] = pythonpath
     with (
         open(os.path.join(tmp, "stdout"), "w+") as fo,
         open(os.path.join(tmp, "stderr"), "w+") as fe,
@@ -355,10 +361,17 @@ def main(argv=None) -> int:
     p.add_argument("--bracket-scene", default=None)
     p.add_argument("--out", default=str(ROOT / "out" / "bench" / "first_result.json"))
     p.add_argument("--label", default="", help="a label stored in the JSON (e.g. the commit)")
+    p.add_argument(
+        "--compare",
+        default=None,
+        metavar="PATH",
+        help="also run every case with PYTHONPATH=PATH (another checkout, label 'before'), "
+        "interleaved with the current one (label 'after'): paired figures from one run",
+    )
     a = p.parse_args(argv)
     cases = [c for c in a.cases.split(",") if c]
     for c in cases:
-        if c not in CASES:
+        if c not in CASES and not (c.startswith("twist") and c[5:].isdigit()):
             p.error(f"unknown case {c!r} (one of {', '.join(CASES)})")
     if "bracket" in cases and not a.bracket_scene:
         print("bracket: no --bracket-scene, skipped", file=sys.stderr)
@@ -367,19 +380,20 @@ def main(argv=None) -> int:
     runs: dict[tuple[str, str], list[dict]] = {}
     load0 = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="bench_first_") as tmp:
+        variants = [("after", None)]
+        if a.compare:
+            variants.insert(0, ("before", os.path.abspath(a.compare)))
         for i in range(a.repeat):
             for case in cases:
-                cache = os.path.join(tmp, f"cache_{case}_{i}")
-                shutil.rmtree(cache, ignore_errors=True)
-                for setting in ("empty", "warm"):
-                    r = run_case(case, cache, tmp, bracket)
-                    runs.setdefault((case, setting), []).append(r)
-                    print(
-                        f"  {case:8s} {setting:5s} run {i + 1}: {r['wall_s']:6.2f} s wall, "
-                        f"{r['cpu_s']:6.2f} s CPU, {r['counts']['compiles']} compilations, "
-                        f"{r['counts']['cache_hits']} cache hits",
-                        flush=True,
-                    )
+                order = variants if i % 2 == 0 else variants[::-1]
+                for label, path in order:
+                    cache = os.path.join(tmp, f"cache_{case}_{label}_{i}")
+                    shutil.rmtree(cache, ignore_errors=True)
+                    for setting in ("empty", "warm"):
+                        r = run_case(case, cache, tmp, bracket, path)
+                        key = (case, setting if not a.compare else f"{setting} {label}")
+                        runs.setdefault(key, []).append(r)
+                        _progress(key, i, r)
     rows = []
     for (case, setting), rs in runs.items():
         best = min(rs, key=lambda r: r["wall_s"])
@@ -412,17 +426,26 @@ def main(argv=None) -> int:
     return 0
 
 
+def _progress(key: tuple[str, str], i: int, r: dict) -> None:
+    print(
+        f"  {key[0]:8s} {key[1]:12s} run {i + 1}: {r['wall_s']:6.2f} s wall, "
+        f"{r['cpu_s']:6.2f} s CPU, {r['counts']['compiles']} compilations, "
+        f"{r['counts']['cache_hits']} cache hits",
+        flush=True,
+    )
+
+
 def _print(rows: list[dict]) -> None:
     head = ["wall", *BUCKETS, "XLA n", "hits", "RSS MB"]
-    print(f"\n{'case':8s} {'cache':5s} " + " ".join(f"{h:>8s}" for h in head))
+    print(f"\n{'case':8s} {'cache':12s} " + " ".join(f"{h:>8s}" for h in head))
     for r in rows:
         s = r["split"]
         cells = [f"{r['wall_s_min']:8.2f}", *(f"{s[b]:8.2f}" for b in BUCKETS)]
         cells += [f"{r['counts']['compiles']:8d}", f"{r['counts']['cache_hits']:8d}"]
         cells.append(f"{r['peak_rss_mb']:8.0f}")
-        print(f"{r['case']:8s} {r['setting']:5s} " + " ".join(cells))
+        print(f"{r['case']:8s} {r['setting']:12s} " + " ".join(cells))
         if r["marks"]:
-            print(f"{'':15s}" + ", ".join(f"{k} {v:.2f} s" for k, v in r["marks"].items()))
+            print(f"{'':22s}" + ", ".join(f"{k} {v:.2f} s" for k, v in r["marks"].items()))
 
 
 if __name__ == "__main__":
