@@ -279,6 +279,10 @@ def _eager(fn, psi, *args):
     for :func:`forces` of a tet mesh). Inside a trace: inlined as it is."""
     if any(isinstance(a, Tracer) for a in jax.tree_util.tree_leaves(args)):
         return fn(psi, *args)
+    try:
+        hash(psi)
+    except TypeError:  # an unhashable callable cannot be a static argument
+        return fn(psi, *args)
     return _JITTED[fn](psi, *args)
 
 
