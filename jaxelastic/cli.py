@@ -17,10 +17,11 @@ energy, time split into compile and run, the files written; see
 ``out``, ``summary``, ``wall_time``, ``compile_time``; ``E`` and ``nu`` of a fit), for
 scripts. Progress goes to stderr (``--no-progress`` silences it).
 
-The CLI, and only the CLI, changes JAX's configuration: it enables float64 and JAX's
-persistent compilation cache in ``$JAXELASTIC_CACHE_DIR`` (default
-``$XDG_CACHE_HOME/jaxelastic/jax`` or ``~/.cache/jaxelastic/jax``; ``--no-cache`` turns
-it off), which cuts the compile time of a repeated run.
+The CLI enables float64 and JAX's persistent compilation cache
+(:mod:`jaxelastic.cache`: ``$JAXELASTIC_CACHE_DIR``, default
+``$XDG_CACHE_HOME/jaxelastic/jax`` or ``~/.cache/jaxelastic/jax``, at most
+``$JAXELASTIC_CACHE_MAX_MB``; ``--no-cache`` turns it off), which cuts the compile time of
+a repeated run. (The library enables the same cache lazily at its first solve.)
 
 Exit status: 0 success, 1 a solve failed (the summary is still written), 2 bad usage or
 an invalid scene (a mesh too large for the memory included), 130 interrupted.
@@ -44,16 +45,9 @@ import sys
 import time
 from typing import NoReturn
 
+from .cache import cache_dir as cache_dir
+
 __all__ = ["main", "command", "cache_dir"]
-
-
-def cache_dir() -> str:
-    """Directory of the persistent JAX compilation cache used by the CLI."""
-    env = os.environ.get("JAXELASTIC_CACHE_DIR")
-    if env:
-        return os.path.abspath(os.path.expanduser(env))
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "jaxelastic", "jax")
 
 
 def _parse_value(text: str):
@@ -161,18 +155,16 @@ def _parser() -> argparse.ArgumentParser:
 def _enable_jax(cache: bool) -> None:
     import jax
 
+    from .cache import enable_persistent_cache, ensure_persistent_cache
+
     jax.config.update("jax_enable_x64", True)
-    if cache:
-        path = cache_dir()
-        try:
-            os.makedirs(path, exist_ok=True)
-        except OSError as e:
-            print(f"jaxelastic: warning: no compilation cache ({e})", file=sys.stderr)
-            return
-        jax.config.update("jax_compilation_cache_dir", path)
-        # every executable: the small ones (op-by-op, outputs) add up to seconds per run
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    if not cache:
+        ensure_persistent_cache(enable=False)  # the library's lazy default stays off too
+        return
+    try:
+        enable_persistent_cache()
+    except (OSError, RuntimeError) as e:
+        print(f"jaxelastic: warning: no compilation cache ({e})", file=sys.stderr)
 
 
 def _crosscheck(argv) -> int:

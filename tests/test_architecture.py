@@ -355,7 +355,7 @@ def test_scanner_catches_violations(tmp_path, monkeypatch):
 
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("jaxelastic.deprecation", "jaxelastic.mesh"),
+    ("jaxelastic.deprecation", "jaxelastic.mesh", "jaxelastic.cache"),
     ("jaxelastic.mechanics",),
     ("jaxelastic.materials",),
     ("jaxelastic.loads", "jaxelastic.contact", "jaxelastic.parallel"),

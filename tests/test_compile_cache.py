@@ -7,6 +7,7 @@ test asks for a second run at most 80 % of the first (CPU time of the child proc
 steadier than wall time on a shared machine).
 """
 
+import functools
 import os
 import re
 import subprocess
@@ -103,6 +104,137 @@ def test_dynamic_scene_compiles_one_newton_solve(tmp_path):
     assert summary["dynamic"]["steps"] == 5
     for name in NEWTON + STEP:
         assert compiles[f"jit({name})"] == 1, (name, dict(compiles))
+
+
+def test_solve_and_gradient_compile_each_piece_once():
+    """The README pattern on a small beam: the plain solve compiles each Newton piece once;
+    a solve at a new load or parameter value compiles nothing; the eager gradient reuses
+    the solve's pieces and adds two small ones that hold no host callback (so the
+    persistent cache keeps them: never the traced adjoint ``_cotangents``); a second
+    gradient compiles nothing; ``je.forces`` outside jit is one program. Counted with
+    ``jax.monitoring`` (each compilation or persistent-cache load is one event), so the
+    test does not depend on the machine's load."""
+    import jax.numpy as jnp
+    from jax import monitoring
+
+    import jaxelastic as je
+    from jaxelastic import loads
+
+    events: list[str] = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            events.append(str(kw.get("fun_name", "")))
+
+    mesh = je.rectangle(4, 1, size=(2.0, 0.5))  # 2D: the same pieces, compiled faster
+    clamp = loads.fix(mesh, loads.nodes_on_plane(mesh, 0, 0.0))
+    g = jnp.asarray(loads.gravity_load(mesh, density=1000.0, g=[0, -9.81]))
+    psi = je.materials.neo_hookean
+    lame = functools.partial(je.Lame.from_E_nu, dim=2)
+    pot = je.Potential(mesh=mesh, params=lame(1e6, 0.3), f_ext=g, psi=psi)
+    params2 = lame(2e6, 0.3)
+    jax.clear_caches()
+    monitoring.register_event_duration_secs_listener(listen)
+    try:
+        je.forces(psi, mesh.points, mesh, pot.params)
+        forces = list(events)
+        je.solve(pot, clamp)
+        first = list(events)
+        je.solve(pot.replace(f_ext=2.0 * g, params=params2), clamp)
+        second = events[len(first) :]
+
+        def tip(E):
+            p = lame(E, jnp.asarray(0.3))
+            return je.solve(pot.replace(params=p), clamp).x[:, 1].min()
+
+        grad = jax.grad(tip)
+        grad(jnp.asarray(1e6))
+        n_grad = len(events)
+        grad(jnp.asarray(3e6))
+        regrad = events[n_grad:]
+        in_grad = Counter(events[len(first) : n_grad])
+    finally:
+        monitoring.unregister_event_duration_listener(listen)
+    assert forces == ["jit(_nodal_forces)"], forces
+    counts = Counter(first)
+    for name in (*NEWTON, "_upper"):
+        assert counts[f"jit({name})"] == 1, (name, counts)
+    assert not [e for e in second if e.startswith("jit(_")], second
+    assert not [e for e in regrad if e.startswith("jit(_")], regrad
+    for name in (*NEWTON, "_upper", "_cotangents"):
+        assert in_grad[f"jit({name})"] == 0, (name, in_grad)
+    assert in_grad["jit(_exact_upper)"] == 1 and in_grad["jit(_host_pullback)"] == 1, in_grad
+
+
+_DEFAULT_CACHE_CHILD = """
+import os, sys, jax
+jax.config.update("jax_enable_x64", True)
+import jaxelastic as je
+assert jax.config.jax_compilation_cache_dir is None, "set at import"
+je.rectangle(2, 1)  # the first mesh: the library's default cache, before any compile
+print(jax.config.jax_compilation_cache_dir, jax.config.jax_compilation_cache_max_size)
+"""
+
+
+@pytest.mark.parametrize("switch", ["", "0"])
+def test_library_enables_the_default_cache_lazily(tmp_path, switch):
+    """A fresh process: nothing at import; the first mesh enables JAX's persistent cache
+    in $JAXELASTIC_CACHE_DIR with the size limit (JAX then locks the directory around
+    each read, write and eviction: safe with concurrent processes); JAXELASTIC_CACHE=0
+    leaves it off; a cache the user configured (as this test session does) is kept."""
+    from jaxelastic.cache import cache_max_bytes, ensure_persistent_cache
+
+    assert ensure_persistent_cache() is None  # the session's own cache stays
+    env = dict(os.environ, JAXELASTIC_CACHE_DIR=str(tmp_path / "c"), JAXELASTIC_CACHE=switch)
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    p = subprocess.run(
+        [sys.executable, "-c", _DEFAULT_CACHE_CHILD], env=env, capture_output=True, text=True
+    )
+    assert p.returncode == 0, p.stderr[-2000:]
+    path, size = p.stdout.split()
+    if switch == "0":
+        assert path == "None"
+    else:
+        assert path == str(tmp_path / "c") and int(size) == cache_max_bytes() > 0
+        assert os.path.isdir(path)
+
+
+def test_sparsity_pattern_kept_on_disk(tmp_path, monkeypatch):
+    """Large meshes keep their host sparsity pattern next to the persistent cache: a
+    second build loads the same arrays (the twist n = 29 analysis took 4.3 s, its load
+    0.5 s); a corrupt file is built again; at most DISK_KEEP files are kept."""
+    import dataclasses
+
+    import numpy as np
+
+    import jaxelastic as je
+    from jaxelastic.solvers.host import pattern as P
+
+    monkeypatch.setattr(P, "DISK_MIN_SLOTS", 0)
+    monkeypatch.setattr(P, "DISK_KEEP", 2)
+    monkeypatch.setattr(P, "_disk_folder", lambda: str(tmp_path))
+    builds = []
+    build = P.SparsityPattern.build
+    monkeypatch.setattr(
+        P.SparsityPattern, "build", classmethod(lambda cls, *a: builds.append(1) or build(*a))
+    )
+    mesh = je.box(3, 2, 2)
+    cells, n = np.asarray(mesh.cells), mesh.points.shape[0]
+    fixed = np.zeros(n * 3, bool)
+    fixed[:6] = True
+    a = P.SparsityPattern.build_cached(cells, n, 3, fixed)
+    b = P.SparsityPattern.build_cached(cells, n, 3, fixed)
+    assert len(builds) == 1
+    for f in dataclasses.fields(a):
+        assert np.array_equal(getattr(a, f.name), getattr(b, f.name)), f.name
+    (path,) = tmp_path.glob("*.npz")
+    path.write_bytes(b"broken")
+    P.SparsityPattern.build_cached(cells, n, 3, fixed)
+    assert len(builds) == 2
+    for k in range(3):
+        fixed[6 + k] = True
+        P.SparsityPattern.build_cached(cells, n, 3, fixed)
+    assert len(list(tmp_path.glob("*.npz"))) == 2
 
 
 if __name__ == "__main__":  # pragma: no cover

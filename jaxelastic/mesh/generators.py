@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..cache import ensure_persistent_cache
 from .core import Mesh, check_formulation, from_arrays
 from .quadratic import to_quadratic
 
@@ -175,6 +176,7 @@ def _finish(pts, cells, p1: str, order: int, formulation: str, kw) -> Mesh:
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order!r}")
     check_formulation(formulation)
+    ensure_persistent_cache()  # the library's default cache, before the first compile
     m = from_arrays(pts, cells, p1, **kw)
     if order == 1 and formulation == "standard":
         return m

@@ -45,11 +45,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.ad_checkpoint import checkpoint_name
+from jax.core import Tracer
+from jax.custom_derivatives import SymbolicZero
 
 from ..loads import Dirichlet
 from ..mechanics import potential as pot_mod
 from ..mechanics.potential import Potential
-from .linear import LinearState, NewtonSystem, exact_system
+from .linear import HostSolver, LinearState, NewtonSystem, assemble_upper, exact_system
+from .linear.system import mass_or_zeros
 from .newton import Newton, minimize, solved_potential
 from .results import Solution, Status
 
@@ -136,22 +139,81 @@ def _zeros_like_tree(tree):
     return jax.tree_util.tree_map(_zero_tangent, tree)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1))
-def _cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, lstate, xbar):
-    """``(pot̄, bc̄)`` of x* from ``x̄`` (one adjoint solve; NaN if anything failed)."""
-    mask = bc.mask
+def _pullback(pot, mask, x, ok, lam, H_lam, xbar, which: tuple[bool, ...]):
+    """``(pot̄, bc̄.values)`` from the adjoint λ: ``θ̄ = −(∂g_f/∂θ)ᵀλ``,
+    ``v̄_D = x̄_D − (Kλ)_D`` (``H_lam`` = Kλ); NaN unless ``ok``.
+
+    ``which``: per leaf of ``pot``, whether it is differentiated (JAX's ``perturbed``
+    flag); only those leaves' cotangents are formed, the others are None (zero): an eager
+    gradient with respect to a material parameter neither computes nor compiles the
+    derivative with respect to the mesh coordinates, loads or masses."""
     fm = (~mask).astype(x.dtype)
-    system = exact_system(pot, x, mask)
+    leaves, tree = jax.tree.flatten(pot)
+    idx = [i for i, w in enumerate(which) if w]
+
+    def g_free(sub):
+        ls = list(leaves)
+        for i, v in zip(idx, sub, strict=True):
+            ls[i] = v
+        return fm * pot_mod.gradient(tree.unflatten(ls), x)
+
+    _, vjp = jax.vjp(g_free, [leaves[i] for i in idx])
+    (sub_bar,) = vjp(-lam)
+    bars: list = [None] * len(leaves)
+    for i, v in zip(idx, sub_bar, strict=True):
+        bars[i] = v
+    pot_bar = tree.unflatten(bars)
+    vals_bar = jnp.where(mask, xbar - H_lam, 0.0)
+    return _nan_unless(ok, pot_bar), _nan_unless(ok, vals_bar)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 8))
+def _cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, lstate, xbar, which):
+    """``(pot̄, bc̄)`` of x* from ``x̄`` (one adjoint solve; NaN if anything failed)."""
+    system = exact_system(pot, x, bc.mask)
     lam, adj_ok = _solve_ff(solver, lstate, adj, system, xbar)
     ok = (status == Status.SUCCESS) & adj_ok
+    return _pullback(pot, bc.mask, x, ok, lam, system.H(lam), xbar, which)
 
-    def g_free(p):
-        return fm * pot_mod.gradient(p, x)
 
-    _, vjp = jax.vjp(g_free, pot)
-    (pot_bar,) = vjp(-lam)
-    vals_bar = jnp.where(mask, xbar - system.H(lam), 0.0)
-    return _nan_unless(ok, pot_bar), _nan_unless(ok, vals_bar)
+def _host_adjoint(solver: Newton, pot, lstate, *arrays) -> bool:
+    """Whether the adjoint solve runs as a Python call on the host (an eager gradient
+    with a host linear solver, the exact Hessian the assembled element matrix): then no
+    compiled piece holds a callback, so JAX's persistent cache keeps them all."""
+    return (
+        isinstance(solver.linear, HostSolver)
+        and getattr(lstate, "host", None) is not None
+        and not pot_mod.has_coupling(pot)
+        and pot.stiffness_damping is None
+        and not any(isinstance(a, Tracer) for t in (pot, *arrays) for a in jax.tree.leaves(t))
+    )
+
+
+@functools.partial(jax.jit, static_argnums=4)
+def _exact_upper(pot, x, mask, element_map, nnz_upper: int):
+    """Exact element Hessians at x, their assembled upper-triangle data and the mass
+    diagonal (the operator of :func:`_cotangents`, for a host solve)."""
+    system = exact_system(pot, x, mask)
+    data = assemble_upper(system.Ke, element_map, nnz_upper)
+    return system.Ke, data, mass_or_zeros(system), (~mask).astype(x.dtype)
+
+
+@functools.partial(jax.jit, static_argnums=8)
+def _host_pullback(pot, mask, x, status, lam, adj_ok, xbar, Ke, which):
+    ok = (status == Status.SUCCESS) & adj_ok & jnp.all(jnp.isfinite(lam))
+    H_lam = pot_mod.element_hessian_vp(pot, Ke, lam)
+    return _pullback(pot, mask, x, ok, lam, H_lam, xbar, which)
+
+
+def _host_cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, lstate, xbar, which):
+    """:func:`_cotangents` outside jit: the adjoint solve a Python call of the host
+    solver between two compiled pieces."""
+    host = lstate.host
+    Ke, data, md, fm = _exact_upper(pot, x, bc.mask, host.element_map, host.nnz_upper)
+    b = np.asarray(fm * xbar)
+    y, ok = solver.linear.host_exact(lstate, data, md, b, adj.rtol, adj.max_iter)
+    lam = jnp.asarray(np.asarray(y) * np.asarray(fm), x.dtype)
+    return _host_pullback(pot, bc.mask, x, status, lam, jnp.asarray(ok), xbar, Ke, which)
 
 
 @functools.lru_cache(maxsize=64)
@@ -164,16 +226,28 @@ def _attach_fn(solver: Newton, adj: ImplicitAdjoint):
         return x
 
     def fwd(pot, bc, x, status, lstate):
-        return x, (pot, bc, x, status, lstate)
+        # which leaves of pot are differentiated: a structure (() or None per leaf), so
+        # that bwd sees it as static
+        flags = tuple(() if p.perturbed else None for p in jax.tree.leaves(pot))
+        value = functools.partial(jax.tree.map, lambda p: p.value)
+        saved = (value(pot), value(bc), x.value, status.value, value(lstate), flags)
+        return x.value, saved
 
     def bwd(saved, xbar):
-        pot, bc, x, status, lstate = saved
-        pot_bar, vals_bar = _cotangents(solver, adj, pot, bc, x, status, lstate, xbar)
+        pot, bc, x, status, lstate, flags = saved
+        which = tuple(f is not None for f in flags)
+        if isinstance(xbar, SymbolicZero):
+            xbar = jnp.zeros_like(x)
+        args = (pot, bc, x, status, lstate, xbar, which)
+        if _host_adjoint(solver, pot, lstate, bc, x, xbar):
+            pot_bar, vals_bar = _host_cotangents(solver, adj, *args)
+        else:
+            pot_bar, vals_bar = _cotangents(solver, adj, *args)
         # the cotangent of the bool mask is a float0 numpy array, which JAX takes for it
         bc_bar = Dirichlet(mask=cast(jax.Array, _float0_like(bc.mask)), values=vals_bar)
         return (pot_bar, bc_bar, jnp.zeros_like(x), _float0_like(status), _zeros_like_tree(lstate))
 
-    attach.defvjp(fwd, bwd)
+    attach.defvjp(fwd, bwd, symbolic_zeros=True)
     return attach
 
 

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
+from ..cache import ensure_persistent_cache
 from ..loads import Dirichlet
 from ..materials import Lame, check_lame
 from ..mechanics.checks import check_psi
@@ -301,6 +302,7 @@ def solve(
         :class:`~jaxelastic.solvers.results.Solution` (``x``, ``status``, ``stats``; outside
         jit ``stats["wall_time"]`` is the wall-clock time of the solve in seconds).
     """
+    ensure_persistent_cache()  # the library's default cache (once; jaxelastic.cache)
     x0 = _check_inputs(pot, bc, x0)
     prepared = prepare_solver(
         solver, pot.mesh, bc, quadratic=is_quadratic(pot), linear_state=linear_state

@@ -173,7 +173,7 @@ class HostLinearSolver:
         self.kind = kind
         self.shape = (n, d)
         self.fixed = fixed.reshape(-1)
-        self.pattern = SparsityPattern.build(cells, n, d, self.fixed)
+        self.pattern = SparsityPattern.build_cached(cells, n, d, self.fixed)
         self.backend = make_backend(
             kind, points=points, fixed=self.fixed, pattern=self.pattern, **opts
         )

@@ -210,6 +210,12 @@ class HostSolver(LinearSolver):
 
     reuse_iter = 25
 
+    def host_exact(self, state, data, md, b, rtol: float, max_iter: int) -> tuple[np.ndarray, bool]:
+        """(outside ``jit``) ``(y, converged)`` of the exact system ``K y = b`` given by its
+        assembled upper-triangle data and mass diagonal (the adjoint solve of an eager
+        gradient; ``b`` zero on fixed dofs)."""
+        raise NotImplementedError
+
 
 def _backend(state: LinearState) -> HostLinearSolver:
     if state is None or state.host is None:
@@ -251,6 +257,11 @@ class Direct(HostSolver):
     def host_step(self, state, data, md, rhs, tol) -> tuple[np.ndarray, int, int]:
         dx, st = _backend(state).factor_solve_upper(data, md, rhs)
         return dx, 1, int(st)
+
+    def host_exact(self, state, data, md, b, rtol: float, max_iter: int) -> tuple[np.ndarray, bool]:
+        """The factorisation of K itself (its symbolic analysis is the Newton solve's)."""
+        y, st = _backend(state).factor_solve_upper(data, md, b)
+        return y, int(st) == Status.SUCCESS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,3 +315,10 @@ class AMG(HostSolver):
         backend = _backend(state)
         dx, its, st = backend.factor_cg_upper(data, md, rhs, tol, self.max_iter, threads=True)
         return dx, int(its), int(st)
+
+    def host_exact(self, state, data, md, b, rtol: float, max_iter: int) -> tuple[np.ndarray, bool]:
+        """Host CG on K to ``rtol·‖b‖``, with the Newton solve's hierarchy where it still
+        converges (:meth:`~jaxelastic.solvers.host.HostLinearSolver.factor_cg_upper`)."""
+        tol = rtol * float(np.linalg.norm(np.asarray(b)))
+        y, _, st = _backend(state).factor_cg_upper(data, md, b, tol, max_iter, threads=True)
+        return y, int(st) == Status.SUCCESS
