@@ -79,6 +79,10 @@ def prepare_solver(
         TypeError: ``solver`` is not Newton settings; ValueError: a ``linear_state`` of
             another solver, or as :func:`~jaxelastic.solvers.linear.init_linear`.
     """
+    # the host structures depend on the topology (and the primal points), never on a
+    # derivative: an eager jax.grad with respect to the rest points keeps the host solvers
+    if is_traced(mesh, bc):
+        mesh, bc = jax.lax.stop_gradient(mesh), jax.lax.stop_gradient(bc)
     if isinstance(solver, PreparedSolver):
         if linear_state is not None and linear_state is not solver.linear_state:
             raise ValueError("pass the linear state once: in the PreparedSolver or as linear_state")
