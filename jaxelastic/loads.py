@@ -39,6 +39,7 @@ __all__ = [
     "Dirichlet",
     "fix",
     "combine",
+    "with_rest_points",
     "no_dirichlet",
     "nodes_where",
     "nodes_in_box",
@@ -157,6 +158,24 @@ def fix(
     values = X.copy()
     values[np.ix_(idx, comps)] += u[:, comps]
     return Dirichlet(mask=jnp.asarray(mask), values=jnp.asarray(values, dtype=mesh.points.dtype))
+
+
+def with_rest_points(bc: Dirichlet, old_points, new_points) -> Dirichlet:
+    """``bc`` on a moved rest shape: the same mask and prescribed *displacements*.
+
+    The values of a :class:`Dirichlet` are positions ``X + u``; when the rest points move
+    from ``old_points`` to ``new_points`` (:meth:`~jaxelastic.mesh.Mesh.with_points`), the
+    prescribed dofs follow them: ``values = new + (values − old)``. Pure and differentiable
+    in ``new_points`` (shape gradients, :func:`jaxelastic.unloaded_shape`).
+
+    Args:
+        bc: Dirichlet data built on the rest points ``old_points`` ``(n_nodes, dim)``.
+        new_points: ``(n_nodes, dim)`` the moved rest points.
+    """
+    new = jnp.asarray(new_points)
+    old = jnp.asarray(old_points, new.dtype)
+    values = jnp.asarray(bc.values, new.dtype)
+    return Dirichlet(mask=bc.mask, values=new + (values - old))
 
 
 def combine(*bcs: Dirichlet) -> Dirichlet:
