@@ -3,8 +3,9 @@
 Problem: a neo-Hookean cantilever clamped at x = 0 sagging under its own weight (3D
 ``box(--n)`` of 4 × 1 × 1 m, E = 1 MPa, ν = 0.3, ρ = 1000 kg/m³, g = 9.81 m/s²), the
 loss its compliance ``f·(x − X)``. Timed per linear solver (warm medians of ``--repeats``
-calls of compiled functions taking the potential, the Dirichlet data and the points as
-arguments; ``direct``: the host sparse Cholesky, ``cg``: the matrix-free PCG):
+calls, interleaved round by round, of compiled functions taking the potential, the
+Dirichlet data and the points as arguments; ``direct``: the host sparse Cholesky, ``cg``:
+the matrix-free PCG):
 
 * ``forward``: today's solve, the mesh built once by ``from_arrays``;
 * ``with_points``: the geometry-differentiable path without a gradient: the rest
@@ -41,19 +42,24 @@ from jaxelastic.io import write_json
 TARGET = dict(with_points=1.2, shape_grad=3.0)
 
 
-def _median_time(fn, repeats: int) -> tuple[float, float]:
-    """``(first call [s], median of the next ``repeats`` calls [s])``."""
+def _interleaved_times(cases: dict, repeats: int) -> dict:
+    """``name -> (first call [s], median warm call [s])``, the warm calls interleaved
+    round by round (one call of every case per round), so that the load of a shared
+    machine drifting during the run affects every case alike."""
     import jax
 
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
+    first = {}
+    for name, fn in cases.items():
         t0 = time.perf_counter()
         jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return first, statistics.median(times)
+        first[name] = time.perf_counter() - t0
+    times: dict = {name: [] for name in cases}
+    for _ in range(repeats):
+        for name, fn in cases.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            times[name].append(time.perf_counter() - t0)
+    return {name: (first[name], statistics.median(times[name])) for name in cases}
 
 
 def cost_rows(n, repeats: int, solvers) -> list[dict]:
@@ -117,7 +123,7 @@ def _cost_of(kind: str, pot, bc, weight, repeats: int) -> list[dict]:
         "shape_grad": lambda: sg(X, pot, bc),
         "param_grad": lambda: pg(pot.params, pot, bc),
     }
-    timed = {name: _median_time(f, repeats) for name, f in cases.items()}
+    timed = _interleaved_times(cases, repeats)
     base = timed["forward"][1]
     return [
         dict(
@@ -205,7 +211,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", default="12,3,3", help="box cells nx,ny,nz (3D cost)")
     ap.add_argument("--n2", default="16,4", help="rectangle cells nx,ny (2D inverse)")
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--solvers", default="direct,cg")
     ap.add_argument("--out", default="out/bench_shape")
     args = ap.parse_args(argv)

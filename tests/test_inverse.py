@@ -4,6 +4,8 @@ a neo-Hookean cantilever sagging under its own weight; the forward solve from th
 reproduces the loaded shape (≤ 1e-8 relative); bad targets are refused; the node colouring
 behind the Jacobian is a distance-2 colouring."""
 
+import json
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -113,3 +115,17 @@ def test_unloaded_shape_of_a_p2_beam_with_dead_loads():
     res = je.unloaded_shape(pot, bc, x_hat)
     assert res.stats["round_trip"] <= 1e-8
     np.testing.assert_allclose(np.asarray(res.x), np.asarray(mesh.points), atol=1e-8)
+
+
+@pytest.mark.extended
+def test_unload_command_writes_the_rest_shape(tmp_path):
+    from jaxelastic.cli import main
+
+    out = tmp_path / "unload"
+    rc = main(["unload", "cook", "--set", "mesh.n=4", "--out", str(out), "--no-cache"])
+    assert rc == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "SUCCESS" and summary["round_trip"] <= 1e-8
+    assert (out / "rest.vtu").stat().st_size > 0
+    # a dynamic scene is refused with the reason
+    assert main(["unload", "swing2d", "--out", str(tmp_path / "d"), "--no-cache"]) == 2
