@@ -173,8 +173,11 @@ def _check_shape_gradient(loss, X0, seed=3, h=1e-4, tol=1e-6, jit=True):
     """Directional derivative of ``loss`` against central differences along a random
     direction; ``jit``: compiled (the rest points are traced, the solves use the
     matrix-free CG), else eager (the host loops of load stepping)."""
-    g = jax.jit(jax.grad(loss))(X0) if jit else jax.grad(loss)(X0)
-    loss = jax.jit(loss) if jit else loss
+    vg = jax.value_and_grad(loss)
+    if jit:  # one compilation for the gradient and the differences
+        vg = jax.jit(vg)
+        loss = lambda X: vg(X)[0]  # noqa: E731
+    g = vg(X0)[1]
     rng = np.random.default_rng(seed)
     d = jnp.asarray(rng.standard_normal(X0.shape))
     d = d / jnp.max(jnp.abs(d))

@@ -268,7 +268,8 @@ def solve(
     differentiable: under ``jax.grad``/``jax.vjp`` (default ``ImplicitAdjoint()``) or
     ``jax.jvp``/``jax.jacfwd`` (``ImplicitAdjoint(mode="forward")``) the derivatives of
     ``x`` with respect to every floating leaf of ``pot`` (material parameters, ``f_ext``,
-    masses, …) and to ``bc.values`` come from the implicit function theorem (one linear
+    masses, the rest points of a mesh moved by :meth:`~jaxelastic.mesh.Mesh.with_points`,
+    …) and to ``bc.values`` come from the implicit function theorem (one linear
     solve with the Hessian at x*), never from the Newton iterations; if the solve failed
     they are NaN. Derivatives with respect to ``x0`` are zero.
 
