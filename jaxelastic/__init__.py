@@ -66,6 +66,7 @@ from .solvers import SolveError as SolveError
 from .solvers import Status as Status
 from .solvers import solve as solve
 from .solvers import solve_incremental as solve_incremental
+from .solvers import unloaded_shape as unloaded_shape
 
 __all__ = [
     # packages
@@ -105,6 +106,7 @@ __all__ = [
     # solving
     "solve",
     "solve_incremental",
+    "unloaded_shape",
     "Newton",
     "CG",
     "Direct",

@@ -135,6 +135,20 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="print one JSON line (status, output directory, E, nu) instead of the table",
     )
+    u = sub.add_parser(
+        "unload",
+        help="the unloaded rest shape of a static scene whose mesh is the loaded shape",
+        description="Read the scene's mesh as the observed, loaded shape and find the rest "
+        "shape whose equilibrium under the scene's loads and supports it is (inverse "
+        "elastostatics); writes rest.vtu and summary.json into --out.",
+    )
+    u.add_argument("scene", help="a static scene TOML file or a shipped scene name")
+    u.add_argument("--out", "-o", default=None, metavar="DIR", help="output directory")
+    u.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    u.add_argument("--method", choices=("direct", "fixed_point"), default="direct")
+    u.add_argument("--no-progress", action="store_true", help="no progress bar or messages")
+    u.add_argument("--no-cache", action="store_true", help="no persistent compilation cache")
+    u.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     sub.add_parser(
         "crosscheck",
         help="check autodiff stress/forces/HVP against hand derivations and finite "
@@ -252,6 +266,8 @@ def _run(args) -> int:
     try:
         scene = load_scene(args.scene, overrides=overrides)
         out = args.out or os.path.join("jaxelastic-out", scene.name)
+        if args.command == "unload":
+            return _unload(scene, out, args)
         if args.command == "fit" or scene.get("fit") is not None:
             return _fit(scene, out, args, t0, clock)
         with clock:
@@ -270,6 +286,25 @@ def _run(args) -> int:
         return 2
     _report(summary, args, clock, t0)
     return 0
+
+
+def _unload(scene, out: str, args) -> int:
+    """``jaxelastic unload``: :func:`~jaxelastic.scene.unload.unload_scene`; exit status 1
+    unless it converged."""
+    import json
+
+    from .scene.unload import unload_scene
+
+    summary = unload_scene(scene, out, method=args.method)
+    if args.json:
+        print(json.dumps(dict(summary, out=out, residual_history=None)))
+    else:
+        print(
+            f"{summary['method']}: {summary['status']} after {summary['iterations']} "
+            f"iterations, round trip {summary['round_trip']:.1e}, largest displacement "
+            f"{summary['max_displacement']:.4g}; wrote {out}/rest.vtu and summary.json"
+        )
+    return 0 if summary["status"] == "SUCCESS" else 1
 
 
 def _fit(scene, out: str, args, t0: float, clock) -> int:

@@ -28,16 +28,18 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from numpy.typing import ArrayLike
 
 from .deprecation import moved_attributes
-from .mesh import Mesh, boundary_facets
-from .mesh.elements import Element, facet_rule
+from .mesh import Mesh, boundary_facets, geometry
+from .mesh.elements import Element
 
 __all__ = [
     "Dirichlet",
     "fix",
     "combine",
+    "with_rest_points",
     "no_dirichlet",
     "nodes_where",
     "nodes_in_box",
@@ -70,8 +72,19 @@ def no_dirichlet(mesh: Mesh) -> Dirichlet:
 
 
 def _mesh_dtype(mesh: Mesh, a) -> np.ndarray:
-    """``a`` as a NumPy array in the mesh's float dtype."""
+    """``a`` as a NumPy array in the mesh's float dtype (a JAX array where ``a`` is
+    traced: a load of a moved rest shape, :meth:`~jaxelastic.mesh.Mesh.with_points`)."""
+    if isinstance(a, Tracer):
+        return a.astype(mesh.points.dtype)  # pyright: ignore[reportReturnType]
     return np.asarray(a, dtype=np.dtype(mesh.points.dtype))
+
+
+def _rest_points(points):
+    """Rest points for the geometry: float64 NumPy, or the JAX array itself when traced
+    (then the loads are differentiable with respect to them)."""
+    if isinstance(points, Tracer):
+        return points
+    return np.asarray(points, dtype=np.float64)
 
 
 def _per_item(value, m: int, d: int, name: str, what: str) -> np.ndarray:
@@ -147,6 +160,24 @@ def fix(
     return Dirichlet(mask=jnp.asarray(mask), values=jnp.asarray(values, dtype=mesh.points.dtype))
 
 
+def with_rest_points(bc: Dirichlet, old_points, new_points) -> Dirichlet:
+    """``bc`` on a moved rest shape: the same mask and prescribed *displacements*.
+
+    The values of a :class:`Dirichlet` are positions ``X + u``; when the rest points move
+    from ``old_points`` to ``new_points`` (:meth:`~jaxelastic.mesh.Mesh.with_points`), the
+    prescribed dofs follow them: ``values = new + (values − old)``. Pure and differentiable
+    in ``new_points`` (shape gradients, :func:`jaxelastic.unloaded_shape`).
+
+    Args:
+        bc: Dirichlet data built on the rest points ``old_points`` ``(n_nodes, dim)``.
+        new_points: ``(n_nodes, dim)`` the moved rest points.
+    """
+    new = jnp.asarray(new_points)
+    old = jnp.asarray(old_points, new.dtype)
+    values = jnp.asarray(bc.values, new.dtype)
+    return Dirichlet(mask=bc.mask, values=new + (values - old))
+
+
 def combine(*bcs: Dirichlet) -> Dirichlet:
     """Union of Dirichlet sets; later sets override earlier ones where they overlap."""
     if not bcs:
@@ -220,7 +251,9 @@ def facet_integrals(points, facets, element: Element | str | None = None):
     """Integrals over rest boundary facets with the element's facet interpolation.
 
     Args:
-        points: ``(n_nodes, dim)`` rest positions.
+        points: ``(n_nodes, dim)`` rest positions (traced points give JAX arrays, so shape
+            gradients flow through facet areas and normals; see
+            :func:`~jaxelastic.mesh.geometry.facet_integrals`).
         facets: ``(m, n_facet_nodes)`` node indices (as :func:`~jaxelastic.mesh.boundary_facets`).
         element: the mesh's element (name or :class:`~jaxelastic.mesh.elements.Element`); by
             default P1 or P2 from the number of facet nodes (composite meshes: pass it).
@@ -230,23 +263,12 @@ def facet_integrals(points, facets, element: Element | str | None = None):
         per facet node, the facet measure, and the unit outward normal of the facet's
         vector area ``∫n dA`` (the exact normal for straight facets).
     """
-    X = np.asarray(points, dtype=np.float64)
+    X = _rest_points(points)
     facets = np.asarray(facets, dtype=np.int64)
     if facets.ndim != 2:
         raise ValueError(f"facets must have shape (m, n_facet_nodes), got {facets.shape}")
-    d = X.shape[1]
-    el = _facet_element(d, facets.shape[1], element)
-    N, dN, w = facet_rule(el)  # (r, k), (r, k, d-1), (r,)
-    T = np.einsum("mka,rkb->mrab", X[facets], dN)  # tangents (m, r, d, d-1)
-    if d == 2:
-        nvec = np.stack([T[..., 1, 0], -T[..., 0, 0]], axis=-1)  # (t_y, -t_x)
-    else:
-        nvec = np.cross(T[..., 0], T[..., 1])
-    da = np.linalg.norm(nvec, axis=-1)  # (m, r) surface Jacobian
-    area = da @ w
-    vec = np.einsum("r,mra->ma", w, nvec)
-    normal = vec / np.linalg.norm(vec, axis=1, keepdims=True)
-    return np.einsum("r,mr,rk->mk", w, da, N), area, normal
+    el = _facet_element(X.shape[1], facets.shape[1], element)
+    return geometry.facet_integrals(X, facets, el)
 
 
 def facet_normals(points, facets, element: Element | str | None = None):
@@ -265,7 +287,7 @@ def traction_load(mesh: Mesh, facets, traction) -> np.ndarray:
             a callable ``t(X_centroid (m, dim)) -> (m, dim)`` (centroid of the corners).
             Constant per facet, integrated consistently: ``f_a = t ∫N_a dA``.
     """
-    X = np.asarray(mesh.points)
+    X = _rest_points(mesh.points)
     facets = np.asarray(facets, dtype=np.int64)
     n, d = X.shape
     k = len(mesh.element_type.facet_nodes[0])
@@ -279,11 +301,17 @@ def traction_load(mesh: Mesh, facets, traction) -> np.ndarray:
     Nint, _, _ = facet_integrals(X, facets, mesh.element_type)
     m = facets.shape[0]
     if callable(traction):
-        t = np.asarray(traction(X[facets[:, :d]].mean(axis=1)), float)
+        t = np.asarray(traction(np.asarray(jax.lax.stop_gradient(X))[facets[:, :d]].mean(axis=1)))
+        t = t.astype(np.float64)
         if t.shape != (m, d):
             raise ValueError(f"traction(X) must return shape ({m}, {d}), got {t.shape}")
     else:
         t = _per_item(traction, m, d, "traction", "facet")
+    if isinstance(X, Tracer):  # a moved rest shape: differentiable in its points
+        tj = jnp.asarray(t, X.dtype)
+        vals = Nint[:, :, None] * tj[:, None, :]  # (m, k, d)
+        f = jnp.zeros((n, d), X.dtype).at[facets.reshape(-1)].add(vals.reshape(-1, d))
+        return _mesh_dtype(mesh, f)
     f = np.zeros((n, d))
     for a in range(facets.shape[1]):
         np.add.at(f, facets[:, a], Nint[:, a, None] * t)
@@ -319,26 +347,6 @@ def _scatter(mesh: Mesh, cells: np.ndarray, share: np.ndarray) -> np.ndarray:
     return m
 
 
-def _p2_rule_integrals(mesh: Mesh):
-    """Per cell, with the element's mass rule: ``∫N_a dV`` ``(c, k)`` and ``∫N_a² dV``."""
-    el = mesh.element_type
-    xi, w = el.mass_rule()
-    N = el.shape_functions(xi)  # (r, k)
-    G = el.shape_gradients(xi)  # (r, k, d)
-    X = np.asarray(mesh.points, dtype=np.float64)[np.asarray(mesh.cells)]
-    detJ = np.linalg.det(np.einsum("cka,rkb->crab", X, G))  # (c, r)
-    wd = detJ * w[None, :]
-    return wd @ N, wd @ (N * N)
-
-
-def _sub_shares(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """Composite cells: linear sub-simplices ``(c·s, d+1)`` and their measures / (d+1)."""
-    el = mesh.element_type
-    cells = np.asarray(mesh.cells)[:, np.asarray(el.sub_cells)]  # (c, s, d+1)
-    share = np.asarray(mesh.weights, dtype=np.float64) / (el.dim + 1)  # (c, s)
-    return cells.reshape(-1, el.dim + 1), np.repeat(share.reshape(-1, 1), el.dim + 1, axis=1)
-
-
 def lumped_mass(mesh: Mesh, density) -> np.ndarray:
     """Lumped nodal masses ``(n_nodes,)`` [kg] from density ρ [kg/m^dim] (scalar or per cell).
 
@@ -350,19 +358,11 @@ def lumped_mass(mesh: Mesh, density) -> np.ndarray:
       each cell's masses add up to ρV.
     """
     rho = _density(mesh, density)
-    el = mesh.element_type
-    if el.is_composite:
-        cells, share = _sub_shares(mesh)
-        m = _scatter(mesh, cells, share * np.repeat(rho, len(el.sub_cells))[:, None])
-        return _mesh_dtype(mesh, m)
-    cells = np.asarray(mesh.cells)
-    if el.order == 1:
-        share = (rho * np.asarray(mesh.volumes, dtype=np.float64) / cells.shape[1])[:, None]
-        return _mesh_dtype(mesh, _scatter(mesh, cells, np.repeat(share, cells.shape[1], axis=1)))
-    n1, n2 = _p2_rule_integrals(mesh)
-    vol = n1.sum(axis=1)
-    m = _scatter(mesh, cells, (rho * vol)[:, None] * n2 / n2.sum(axis=1, keepdims=True))
-    return _mesh_dtype(mesh, m)
+    X = _rest_points(mesh.points)
+    traced = isinstance(X, Tracer)
+    w = mesh.weights if traced else np.asarray(mesh.weights, dtype=np.float64)
+    cells = mesh.cells if traced else np.asarray(mesh.cells)
+    return _mesh_dtype(mesh, geometry.lumped_masses(X, cells, mesh.element_type, w, rho))
 
 
 def gravity_load(mesh: Mesh, density, g, *, consistent: bool = False) -> np.ndarray:
@@ -378,10 +378,23 @@ def gravity_load(mesh: Mesh, density, g, *, consistent: bool = False) -> np.ndar
         raise ValueError(f"g must have shape ({mesh.dim},) for a {mesh.dim}D mesh, got {gv.shape}")
     if not np.isfinite(gv).all():
         raise ValueError(f"g must be finite, got {gv.tolist()}")
+    X = _rest_points(mesh.points)
+    if isinstance(X, Tracer):  # a moved rest shape: differentiable in its points
+        gj = jnp.asarray(gv, X.dtype)
+        if not consistent or mesh.element_type.order == 1:
+            return _mesh_dtype(mesh, lumped_mass(mesh, density)[:, None] * gj[None, :])
+        n1, _ = geometry.consistent_shape_integrals(X, mesh.cells, mesh.element_type)
+        rho_j = jnp.asarray(_density(mesh, density), X.dtype)
+        f = (
+            jnp.zeros(X.shape[0], X.dtype)
+            .at[mesh.cells.reshape(-1)]
+            .add((rho_j[:, None] * n1).reshape(-1))
+        )
+        return _mesh_dtype(mesh, f[:, None] * gj[None, :])
     if not consistent or mesh.element_type.order == 1:
         return _mesh_dtype(mesh, lumped_mass(mesh, density).astype(np.float64)[:, None] * gv)
     rho = _density(mesh, density)
-    n1, _ = _p2_rule_integrals(mesh)
+    n1, _ = geometry.consistent_shape_integrals(X, np.asarray(mesh.cells), mesh.element_type)
     return _mesh_dtype(
         mesh, _scatter(mesh, np.asarray(mesh.cells), rho[:, None] * n1)[:, None] * gv
     )

@@ -2,6 +2,8 @@
 
 Modules: :mod:`~jaxelastic.mesh.core` (the pytree and its validating constructor),
 :mod:`~jaxelastic.mesh.elements` (reference elements and quadrature rules),
+:mod:`~jaxelastic.mesh.geometry` (the rest quantities as functions of the rest points, on
+NumPy or JAX arrays: what makes :meth:`Mesh.with_points` differentiable),
 :mod:`~jaxelastic.mesh.generators` (rectangle, box, Cook's membrane),
 :mod:`~jaxelastic.mesh.quadratic` (P2 / composite lifting, formulation switch) and
 :mod:`~jaxelastic.mesh.boundary` (boundary facets and nodes). Sharded solves partition a
@@ -9,6 +11,7 @@ mesh over devices with :mod:`jaxelastic.parallel`.
 """
 
 from . import elements as elements
+from . import geometry as geometry
 from .boundary import boundary_facets as boundary_facets
 from .boundary import boundary_nodes as boundary_nodes
 from .core import FORMULATIONS as FORMULATIONS
@@ -19,6 +22,7 @@ from .core import from_arrays as from_arrays
 from .generators import box as box
 from .generators import cook_membrane as cook_membrane
 from .generators import rectangle as rectangle
+from .geometry import invalid_cells as invalid_cells
 from .quadratic import linear_cells as linear_cells
 from .quadratic import to_quadratic as to_quadratic
 from .quadratic import vertex_nodes as vertex_nodes
@@ -40,4 +44,6 @@ __all__ = [
     "vertex_nodes",
     "linear_cells",
     "elements",
+    "geometry",
+    "invalid_cells",
 ]

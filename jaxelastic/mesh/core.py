@@ -30,7 +30,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 
+from . import geometry
 from .elements import Element, get_element
 
 __all__ = ["Mesh", "MeshError", "from_arrays", "FORMULATIONS", "check_formulation"]
@@ -107,6 +109,48 @@ class Mesh:
     def element_type(self) -> Element:
         return get_element(self.element)
 
+    def with_points(self, points) -> Mesh:
+        """The same mesh (cells, incidence, element, formulation) on other rest points.
+
+        The rest quantities (``dN``, ``weights``) are recomputed from ``points`` by JAX
+        functions (:func:`~jaxelastic.mesh.geometry.rest_quantities`), so this is valid
+        under ``jit`` and differentiable: ``jax.grad``/``jax.jvp`` of a loss of a solve on
+        the returned mesh flow to ``points`` (shape gradients). The topology is not touched
+        (no reorientation: a cell inverted by the new points is an error).
+
+        Args:
+            points: ``(n_nodes, dim)`` new rest positions [length] (cast to the mesh's
+                float dtype).
+
+        Raises:
+            MeshError: ``points`` of another shape; outside jit (concrete values, also the
+                primal of an eager ``jax.grad``), NaN/inf points or cells that the new
+                points invert or collapse, named
+                (:func:`~jaxelastic.mesh.geometry.describe_invalid`). Inside jit nothing
+                can be raised: :func:`jaxelastic.solve` then returns status ``INVERTED``
+                for such a mesh, and :func:`~jaxelastic.mesh.geometry.invalid_cells` gives
+                the flag per cell.
+            ValueError: a mesh sharded over devices (move the points before sharding).
+        """
+        if self.halo is not None:
+            raise ValueError("with_points: shard the mesh after moving its points (je.shard)")
+        shape = tuple(jnp.shape(points))
+        if shape != tuple(self.points.shape):
+            raise MeshError(
+                f"with_points: points must have shape (n_nodes, dim) = "
+                f"{tuple(self.points.shape)} like mesh.points, got {shape}"
+            )
+        X = jnp.asarray(points)
+        if not jnp.issubdtype(X.dtype, jnp.floating):
+            X = X.astype(self.points.dtype)
+        X = X if X.dtype == self.points.dtype else X.astype(self.points.dtype)
+        dN, w, _ = geometry.rest_quantities(X, self.cells, self.element_type)
+        new = dataclasses.replace(self, points=X, dN=dN, weights=w)
+        concrete = jax.lax.stop_gradient(X)
+        if not isinstance(concrete, Tracer):
+            _check_moved(new, concrete)
+        return new
+
 
 jax.tree_util.register_dataclass(
     Mesh,
@@ -175,10 +219,8 @@ def from_arrays(
     el = _resolve_element(element, pts.shape[1], cls.shape[1], formulation)
     _check_topology(pts, cls)
     cls = cls.astype(np.int32)
-    cls, Jac, detJ = _check_geometry(pts, cls, el, orient)
-    gref = np.asarray(el.shape_gradients(), dtype=np.float64)  # (q, k, d)
-    dN = np.matmul(gref[None], np.linalg.inv(Jac))  # (c, q, k, d) = ∇̂N J⁻¹
-    w = detJ * np.asarray(el.quad_weights)[None, :]  # (c, q)
+    cls = _check_geometry(pts, cls, el, orient)
+    dN, w, _ = geometry.rest_quantities(pts, cls, el)  # (c, q, k, d) = ∇̂N J⁻¹, (c, q)
     return Mesh(
         points=jnp.asarray(pts, dtype=dtype),
         cells=jnp.asarray(cls),
@@ -188,6 +230,25 @@ def from_arrays(
         element=el.name,
         formulation=formulation,
     )
+
+
+def _check_moved(mesh: Mesh, X) -> None:
+    """Refuse non-finite moved points and the cells they invert or collapse (concrete)."""
+    bad_pts = ~np.isfinite(np.asarray(X)).all(axis=1)
+    if bad_pts.any():
+        idx = np.flatnonzero(bad_pts)
+        raise MeshError(
+            f"with_points: {idx.size} point(s) have NaN/inf coordinates, e.g. nodes "
+            f"{idx[:5].tolist()}"
+        )
+    concrete = jax.tree_util.tree_map(jax.lax.stop_gradient, mesh)
+    bad = np.asarray(geometry.invalid_cells(concrete))
+    if bad.any():
+        raise MeshError(
+            "with_points: " + geometry.describe_invalid(concrete, bad) + "; the new rest "
+            "points must keep every cell positively oriented (smaller shape steps, or a "
+            "smoother update of the interior nodes)"
+        )
 
 
 def _float_dtype(dtype):
@@ -287,21 +348,14 @@ def _check_topology(pts: np.ndarray, cls: np.ndarray) -> None:
         )
 
 
-def _rest_jacobians(points: np.ndarray, cells: np.ndarray, element: Element) -> np.ndarray:
-    """``(n_cells, n_q, dim, dim)`` rest Jacobians ``∂X/∂ξ`` (equal to Dm for P1)."""
-    gref = np.asarray(element.shape_gradients(), dtype=np.float64)  # (q, k, d)
-    xe = points[cells]  # (c, k, d)
-    return np.matmul(xe.swapaxes(1, 2)[:, None], gref[None])  # (BLAS; einsum was 2x slower)
-
-
 def _check_geometry(pts: np.ndarray, cls: np.ndarray, el: Element, orient: str):
     """Refuse degenerate and internally folded cells, fix or refuse inverted ones.
 
     Returns:
-        ``(cells, Jac (c, q, d, d), detJ (c, q))`` with every ``detJ > 0``.
+        the cells, reoriented where needed so that every ``det J > 0``.
     """
     dim = pts.shape[1]
-    Jac = _rest_jacobians(pts, cls, el)  # (c, q, d, d)
+    Jac = geometry.rest_jacobians(pts, cls, el)  # (c, q, d, d)
     with np.errstate(all="ignore"):  # (over/underflow is refused below)
         detJ = np.linalg.det(Jac)  # (c, q)
     # scale-aware degeneracy test: measure relative to (longest vertex-to-vertex edge)^dim
@@ -319,7 +373,7 @@ def _check_geometry(pts: np.ndarray, cls: np.ndarray, el: Element, orient: str):
             f"{ext:.3g}): rescale the coordinates to units where the body is between about "
             "1e-30 and 1e30 across (e.g. metres or millimetres)"
         )
-    degenerate = (np.abs(rel) < 1e-12).any(axis=1)
+    degenerate = (np.abs(rel) < geometry.RELATIVE_MEASURE_MIN).any(axis=1)
     if degenerate.any():
         c = np.flatnonzero(degenerate)
         raise MeshError(
@@ -335,7 +389,7 @@ def _check_geometry(pts: np.ndarray, cls: np.ndarray, el: Element, orient: str):
         )
     inverted = (detJ < 0).all(axis=1)
     if not inverted.any():
-        return cls, Jac, detJ
+        return cls
     c = np.flatnonzero(inverted)
     if orient == "refuse":
         raise MeshError(
@@ -349,8 +403,7 @@ def _check_geometry(pts: np.ndarray, cls: np.ndarray, el: Element, orient: str):
     )
     cls = cls.copy()
     cls[c] = cls[c][:, _FLIP[el.n_nodes]]
-    Jac = _rest_jacobians(pts, cls, el)
-    return cls, Jac, np.linalg.det(Jac)
+    return cls
 
 
 def _incidence(cells: np.ndarray, n_nodes: int) -> np.ndarray:

@@ -3,7 +3,8 @@
 ``results`` (Status, Solution, SolveError) → ``linear`` (settings, state, the ``auto``
 table, the one CG) → ``newton`` (settings, state, the one loop) → ``adjoint``
 (implicit-function-theorem derivatives) → ``equilibrium`` (:func:`solve`, the entry point)
-→ ``continuation`` (load stepping on solve).
+→ ``continuation`` (load stepping on solve) → ``inverse`` (the unloaded rest shape of an
+observed loaded one, :func:`unloaded_shape`).
 """
 
 from ..deprecation import moved_attributes
@@ -20,6 +21,7 @@ from .equilibrium import is_traced as is_traced
 from .equilibrium import prepare_solver as prepare_solver
 from .equilibrium import solve as solve
 from .host import HostLinearSolver as HostLinearSolver
+from .inverse import unloaded_shape as unloaded_shape
 from .linear import AMG as AMG
 from .linear import AUTO_DIRECT_MAX_DOFS as AUTO_DIRECT_MAX_DOFS
 from .linear import CG as CG
@@ -46,6 +48,7 @@ __all__ = [
     "value_and_grad",
     "scaled_dirichlet",
     "solve_incremental",
+    "unloaded_shape",
     "bind_solver",
     "PreparedSolver",
     "is_traced",

@@ -251,9 +251,21 @@ def _attach_fn(solver: Newton, adj: ImplicitAdjoint):
     return attach
 
 
+def _flag_rest_shape(pot, res: Solution) -> Solution:
+    """``res`` with status INVERTED where a rest cell of ``pot.mesh`` has a non-positive
+    weight (rest points moved by :meth:`~jaxelastic.mesh.Mesh.with_points` inside jit that
+    invert or collapse a cell: outside jit that is refused before, naming the cells).
+    One reduction over the weights; sharded meshes (zero-weight padding) are not checked."""
+    mesh = pot.mesh
+    if getattr(mesh, "halo", None) is not None:
+        return res
+    ok = jnp.all(lax.stop_gradient(mesh.weights) > 0)
+    return res._replace(status=jnp.where(ok, res.status, Status.INVERTED).astype(res.status.dtype))
+
+
 def _reverse(solver: Newton, lstate, adj: ImplicitAdjoint, pot, bc, x0) -> Solution:
     stop = lax.stop_gradient
-    res = minimize(solver, lstate, stop(pot), stop(bc), stop(x0))
+    res = _flag_rest_shape(pot, minimize(solver, lstate, stop(pot), stop(bc), stop(x0)))
     x = checkpoint_name(res.x, X_STAR)
     status = checkpoint_name(res.status, X_STAR)
     # x* minimises the potential with its terms at the stiffness the solve adapted to
@@ -295,7 +307,7 @@ def _forward_fn(solver: Newton, adj: ImplicitAdjoint):
 
     @jax.custom_jvp
     def solve_fn(pot, bc, x0, lstate):
-        return minimize(solver, lstate, pot, bc, x0)
+        return _flag_rest_shape(pot, minimize(solver, lstate, pot, bc, x0))
 
     @solve_fn.defjvp
     def jvp(primals, tangents):

@@ -80,6 +80,10 @@ def prepare_solver(
         TypeError: ``solver`` is not Newton settings; ValueError: a ``linear_state`` of
             another solver, or as :func:`~jaxelastic.solvers.linear.init_linear`.
     """
+    # the host structures depend on the topology (and the primal points), never on a
+    # derivative: an eager jax.grad with respect to the rest points keeps the host solvers
+    if is_traced(mesh, bc):
+        mesh, bc = jax.lax.stop_gradient(mesh), jax.lax.stop_gradient(bc)
     if isinstance(solver, PreparedSolver):
         if linear_state is not None and linear_state is not solver.linear_state:
             raise ValueError("pass the linear state once: in the PreparedSolver or as linear_state")
@@ -265,7 +269,8 @@ def solve(
     differentiable: under ``jax.grad``/``jax.vjp`` (default ``ImplicitAdjoint()``) or
     ``jax.jvp``/``jax.jacfwd`` (``ImplicitAdjoint(mode="forward")``) the derivatives of
     ``x`` with respect to every floating leaf of ``pot`` (material parameters, ``f_ext``,
-    masses, …) and to ``bc.values`` come from the implicit function theorem (one linear
+    masses, the rest points of a mesh moved by :meth:`~jaxelastic.mesh.Mesh.with_points`,
+    …) and to ``bc.values`` come from the implicit function theorem (one linear
     solve with the Hessian at x*), never from the Newton iterations; if the solve failed
     they are NaN. Derivatives with respect to ``x0`` are zero.
 
