@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -202,15 +202,16 @@ class Objective(NamedTuple):
         Jz = np.stack(cols, axis=1)
         return np.asarray(r), np.linalg.solve(D.T, Jz.T).T
 
-    def uncertainty(self, z, warms=None) -> tuple[Uncertainty, tuple[str, ...], np.ndarray]:
-        """``(Uncertainty, names, values)`` of the fitted parameters at ``z`` (Gauss–Newton,
+    def uncertainty(self, z, warms=None) -> tuple[Uncertainty, tuple[str, ...], np.ndarray, Any]:
+        """``(Uncertainty, names, values, residuals)`` of the fitted parameters at ``z``
+        (the residual vector of :meth:`residuals_and_jacobian`; Gauss–Newton,
         :func:`~jaxelastic.fitting.gauss_newton_uncertainty`; scaled by the reduced χ²
         unless every case's σ are measurement standard deviations; the regulariser is
         not part of it)."""
         r, J = self.residuals_and_jacobian(z, warms)
         vals, names = fitted_values(self.pz, jnp.asarray(z))
         unc = gauss_newton_uncertainty(J, r, known_sigma=self.sigma_known)
-        return unc, names, np.asarray(vals)
+        return unc, names, np.asarray(vals), r
 
 
 def parametrize(

@@ -91,6 +91,8 @@ class FitResult(NamedTuple):
         names: names of the fitted parameters (``"E"``, ``"c10"``, ``"E[1]"``, …).
         uncertainty: the Gauss–Newton :class:`~jaxelastic.fitting.Uncertainty` at the
             optimum in the order of ``names`` (None when not computed).
+        residuals: ``(m,)`` the cases' residual vectors at the optimum, concatenated in
+            case order (``√w·(pred − data)/σ`` for measurements), with the uncertainty.
     """
 
     material: Any
@@ -111,6 +113,7 @@ class FitResult(NamedTuple):
     failures: tuple = ()
     names: tuple = ()
     uncertainty: Uncertainty | None = None
+    residuals: np.ndarray | None = None
 
     @property
     def params(self):
@@ -369,11 +372,11 @@ def fit(
             RuntimeWarning,
             stacklevel=2,
         )
-    unc = None
+    unc = r = None
     if uncertainty or (uncertainty is None and obj.sigma_known):
-        unc = obj.uncertainty(z, warms)[0]
+        unc, _, _, r = obj.uncertainty(z, warms)
     res = _result(tr, z, k, reason, warms, time.perf_counter() - t_start)
-    return res._replace(uncertainty=unc)
+    return res._replace(uncertainty=unc, residuals=r)
 
 
 def _with_progress(run, max_iter: int, progress: bool):
