@@ -149,7 +149,11 @@ def test_fit_command_two_regions(tmp_path, capsys):
         ("target = { E = -1.0, nu = 0.3 }", "", r"\[fit\]\.target\.E must be > 0"),
         ('target = { E = 1.0, nu = 0.3 }\nobserved = "a.npy"', "", r"exactly one of"),
         ("target = { E = 1.0, nu = 0.3 }\noptimizer = 'sgd'", "", r"\[fit\]\.optimizer"),
-        ("target = { E = 1.0, nu = 0.3 }\nfields = ['G']", "", r"\[fit\]\.fields: 'G' is not a parameter"),
+        (
+            "target = { E = 1.0, nu = 0.3 }\nfields = ['G']",
+            "",
+            r"\[fit\]\.fields: 'G' is not a parameter",
+        ),
         (
             "target = { E = 1.0, nu = 0.3 }",
             "wieght = 2.0",

@@ -109,9 +109,9 @@ class Observation(abc.ABC):
             raise ValueError(f"{self.kind} observation: sigma must be > 0 and finite, got {s}")
         bad = np.argwhere(~np.isfinite(np.asarray(self.data, dtype=np.float64)))
         if bad.size:
+            idx = tuple(int(i) for i in bad[0])
             raise ValueError(
-                f"{self.kind} observation: data is not finite at index {tuple(int(i) for i in bad[0])} "
-                "(level, entry, ...)"
+                f"{self.kind} observation: data is not finite at index {idx} (level, entry, ...)"
             )
 
 
