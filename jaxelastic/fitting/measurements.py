@@ -169,7 +169,8 @@ class Points(Observation):
     def at(cls, mesh, points, displacements, sigma, components=None) -> Points:
         """Locate ``points`` ``(n, dim)`` [m] in ``mesh``; ``displacements``
         ``(n_levels, n, dim)`` [m] (only ``components``, names ``"x"``, ``"y"``, ``"z"``
-        or axes, are kept; default all).
+        or axes, are kept; default all), or ``(n_levels, n, len(components))`` already
+        reduced to them.
 
         Raises:
             ValueError: a point outside the body, or shapes that do not match.
@@ -178,11 +179,21 @@ class Points(Observation):
         comps = _components(components, dim)
         pts = np.asarray(points, dtype=np.float64)
         u = np.asarray(displacements, dtype=np.float64)
-        if u.ndim != 3 or u.shape[1:] != pts.shape or pts.ndim != 2 or pts.shape[1] != dim:
+        reduced = u.ndim == 3 and u.shape[2] == len(comps) < dim
+        n = pts.shape[0] if pts.ndim == 2 else -1
+        if (
+            pts.ndim != 2
+            or pts.shape[1] != dim
+            or u.ndim != 3
+            or u.shape[1] != n
+            or not (reduced or u.shape[2] == dim)
+        ):
             raise ValueError(
                 f"points must be (n, {dim}) and displacements (n_levels, n, {dim}); got "
                 f"{pts.shape} and {u.shape}"
             )
+        if not reduced:
+            u = u[..., list(comps)]
         cell, N = locate_points(mesh, pts)
         nodes = np.asarray(mesh.cells)[cell]
         dt = mesh.points.dtype
@@ -190,7 +201,7 @@ class Points(Observation):
             jnp.asarray(nodes),
             jnp.asarray(N, dt),
             jnp.asarray(pts, dt),
-            jnp.asarray(u[..., list(comps)], dt),
+            jnp.asarray(u, dt),
             sigma,
             comps,
         )
