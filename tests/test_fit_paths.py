@@ -110,3 +110,27 @@ def test_load_path_fit_recovers_E_nu_within_standard_errors():
     err = np.array([res.E - 1000.0, res.nu - 0.3])
     assert np.all(np.abs(err) <= 3.0 * se), (err, se)
     assert np.all(se < np.array([50.0, 0.05]))  # informative
+
+
+def test_plate_with_hole_specimen_geometry():
+    """The O-grid covers one eighth of the plate: its volume is (W² − πa²/4)·T up to the
+    hole's chords (P1: the polygon's area; P2: the circle's, to the quadratic cells'
+    accuracy), the symmetry planes and the grip hold the expected nodes."""
+    from jaxelastic.fitting import specimens as S
+
+    W, a, T = 2.0, 0.5, 0.2
+    for order, n, tol in ((1, 8, None), (2, 6, 2e-4)):
+        mesh = S.plate_with_hole(n, 4, 1, half_width=W, radius=a, half_thickness=T, order=order)
+        vol = float(jnp.sum(mesh.weights))
+        if tol is None:  # P1: the hole is the polygon with n chords
+            hole = 0.5 * n * a * a * np.sin(np.pi / (2 * n))
+            np.testing.assert_allclose(vol, (W * W - hole) * T, rtol=1e-12)
+        else:
+            np.testing.assert_allclose(vol, (W * W - np.pi * a * a / 4) * T, rtol=tol)
+    test = S.hole_test(mesh, 0.1)
+    X = np.asarray(mesh.points)
+    np.testing.assert_allclose(X[test.pulled, 0], W)
+    mask = np.asarray(test.bc.mask)
+    assert mask[np.isclose(X[:, 0], 0.0), 0].all() and mask[np.isclose(X[:, 2], 0.0), 2].all()
+    pts = S.dic_points(test, 20, 0, margin=0.3)
+    assert np.all(np.linalg.norm(pts[:, :2], axis=1) >= a + 0.3) and np.allclose(pts[:, 2], T)
