@@ -605,6 +605,11 @@ def _measured_summary(res: fitting.FitResult, cases, cfg, summary: dict) -> None
         for c, rep in zip(cfg.case, reports, strict=True)
     ]  # fmt: skip
     summary["initial"] = {k: getattr(cfg.initial, k) for k in cfg.fields}
+    summary["held"] = {  # e.g. the bulk modulus kappa: part of the model, held fixed
+        k: float(v)
+        for k, v in res.params._asdict().items()
+        if k not in res.names and np.ndim(v) == 0
+    }
     summary["result"] = dict(
         loss=float(res.loss),
         converged=bool(res.converged),
