@@ -73,6 +73,20 @@ def test_a_case_that_is_not_a_pytree_gets_advice():
         F.fit([NotRegistered()], P(1.0))
 
 
+@dataclasses.dataclass(frozen=True)
+class DefaultBind(Unstable):
+    def bind(self, solver):
+        return F.Case.bind(self, solver)
+
+
+jax.tree_util.register_dataclass(DefaultBind, data_fields=["weight"], meta_fields=["mesh_"])
+
+
+def test_a_case_binding_no_solver_state_gets_advice():
+    with pytest.raises(TypeError, match=r"DefaultBind\).bind returned Newton.*prepare_solver"):
+        F.fit([DefaultBind()], P(1.0))
+
+
 def _plate(E, nu, factors, rng=None, noise=0.0):
     mesh = je.rectangle(6, 3, size=(3.0, 1.0))
     left, right = L.nodes_on_plane(mesh, 0, 0.0), L.nodes_on_plane(mesh, 0, 3.0)

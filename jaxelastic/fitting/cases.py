@@ -87,8 +87,11 @@ class Case(abc.ABC):
     def evaluate(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):
         """``(unweighted loss, CaseAux)`` at ψ parameters ``params``."""
 
-    def bind(self, solver: Newton) -> Newton | PreparedSolver:
-        """``solver`` as is (override to bind a host linear solver to the case)."""
+    def bind(self, solver: Newton) -> Newton | PreparedSolver | None:
+        """The solver ``evaluate`` receives: override to return
+        :func:`~jaxelastic.solvers.prepare_solver` ``(solver, mesh, bc)`` (a pytree, bound
+        once outside jit), or None for a case without solves; the default returns
+        ``solver`` as is, which the compiled objective refuses with this advice."""
         return solver
 
     def residuals(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):

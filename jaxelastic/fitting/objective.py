@@ -128,7 +128,16 @@ def check_cases(cases) -> None:
 def bind_solvers(cases, solver: Newton) -> tuple:
     """One :class:`~jaxelastic.solvers.PreparedSolver` per case: the Newton settings with
     the linear solver's state for the case's mesh and mask (outside jit)."""
-    return tuple(c.bind(solver) for c in cases)
+    bound = tuple(c.bind(solver) for c in cases)
+    for i, (c, b) in enumerate(zip(cases, bound, strict=True)):
+        leaves = jax.tree_util.tree_leaves(b)
+        if len(leaves) == 1 and leaves[0] is b and not hasattr(b, "dtype"):
+            raise TypeError(
+                f"case {i} ({type(c).__name__}).bind returned {type(b).__name__}, which the "
+                "compiled objective cannot take: return jaxelastic.solvers.prepare_solver("
+                "solver, mesh, bc) for a case that solves, or None for one that does not"
+            )
+    return bound
 
 
 class Objective(NamedTuple):
