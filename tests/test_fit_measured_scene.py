@@ -132,7 +132,7 @@ def test_bad_entries_name_the_key(tmp_path):
 
 
 def test_older_position_files_name_file_and_row(tmp_path):
-    """``[fit].observed`` files (issue of the older targets): rest shape, NaN, empty NPZ,
+    """``[fit].observed`` files of the position targets: rest shape, NaN, empty NPZ,
     out-of-range and duplicated CSV nodes, wrong shape."""
     from jaxelastic.scene.fit import read_observed
 
