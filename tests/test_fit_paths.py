@@ -148,3 +148,33 @@ def test_plate_with_hole_specimen_geometry():
     assert mask[np.isclose(X[:, 0], 0.0), 0].all() and mask[np.isclose(X[:, 2], 0.0), 2].all()
     pts = S.dic_points(test, 20, 0, margin=0.3)
     assert np.all(np.linalg.norm(pts[:, :2], axis=1) >= a + 0.3) and np.allclose(pts[:, 2], T)
+
+
+@pytest.mark.extended
+def test_a_failing_level_is_retried_in_sub_steps_and_never_skipped():
+    """A pull that Newton (5 steps at most) cannot reach from the rest shape converges in
+    sub-steps; one it cannot reach even so makes the case fail, naming the level and the
+    status (the level is not skipped)."""
+    mesh = je.rectangle(4, 2, size=(2.0, 1.0))
+    left, right = L.nodes_on_plane(mesh, 0, 0.0), L.nodes_on_plane(mesh, 0, 2.0)
+    e = jnp.asarray([1.0, 0.0])
+    newton = je.Newton(rtol=1e-10, max_steps=3)
+    adj = je.ImplicitAdjoint()
+
+    def case(pull, factors, cutbacks):
+        bc = L.combine(L.fix(mesh, left), L.fix(mesh, right, displacement=[pull, 0.0]))
+        pot = je.Potential(mesh, M.Lame.from_E_nu(100.0, 0.3, dim=2), psi=M.neo_hookean)
+        obs = (F.Reaction(jnp.asarray(right), e, jnp.zeros(len(factors)), 1.0),)
+        return F.LoadPathCase(pot, bc, factors, obs, max_cutbacks=cutbacks), pot, bc
+
+    c, pot, bc = case(1.0, [0.5, 1.0], 4)
+    direct = je.solve(pot, bc, solver=newton, throw=False)
+    assert not bool(direct.ok)  # one step from the rest shape fails
+    (force,), aux = c.predictions(
+        pot.params, c.initial_warm(), c.bind(newton), je.ImplicitAdjoint()
+    )
+    assert bool(aux.ok) and int(aux.level) == -1 and np.all(np.diff(np.asarray(force)) > 0)
+    c, pot, _ = case(2.0, [0.5, 1.0], 0)  # no sub-steps allowed: level 0 fails, named
+    _, aux = c.predictions(pot.params, c.initial_warm(), c.bind(newton), adj)
+    assert not bool(aux.ok) and int(aux.level) == 0
+    assert Status(int(aux.status)) != Status.SUCCESS
