@@ -5,8 +5,10 @@
   (transforms, spatial layout, regularisation over adjacent regions);
 * :mod:`~jaxelastic.fitting.elastic`: the (E, ν) convenience, :class:`Material`;
 * :mod:`~jaxelastic.fitting.observations`: misfit, noise, markers, nested meshes;
+* :mod:`~jaxelastic.fitting.measurements`: the observation protocol and its kinds
+  (:class:`Positions`, :class:`Points`, :class:`Reaction`, :class:`Moment`, :class:`Surface`);
 * :mod:`~jaxelastic.fitting.cases`: the case protocol, :class:`LoadCase`,
-  :class:`TrajectoryCase`;
+  :class:`TrajectoryCase`, :class:`LoadPathCase` (load levels with observations);
 * :mod:`~jaxelastic.fitting.objective`: the compiled objective in unconstrained variables;
 * :mod:`~jaxelastic.fitting.optimization`: :func:`fit` with optax;
 * :mod:`~jaxelastic.fitting.identifiability`: :func:`loss_landscape`, :func:`loss_hessian`;
@@ -20,14 +22,24 @@
 from .cases import Case as Case
 from .cases import CaseAux as CaseAux
 from .cases import LoadCase as LoadCase
+from .cases import LoadPathCase as LoadPathCase
 from .cases import TrajectoryCase as TrajectoryCase
 from .elastic import LameOf as LameOf
 from .elastic import Material as Material
 from .elastic import material_parametrization as material_parametrization
 from .identifiability import loss_hessian as loss_hessian
 from .identifiability import loss_landscape as loss_landscape
+from .measurements import Moment as Moment
+from .measurements import Observation as Observation
+from .measurements import Points as Points
+from .measurements import Positions as Positions
+from .measurements import Reaction as Reaction
+from .measurements import SolvedState as SolvedState
+from .measurements import Surface as Surface
+from .measurements import locate_points as locate_points
 from .objective import FIT_SOLVER as FIT_SOLVER
 from .objective import Objective as Objective
+from .objective import fitted_values as fitted_values
 from .objective import make_objective as make_objective
 from .objective import parametrize as parametrize
 from .observations import add_noise as add_noise
@@ -35,6 +47,7 @@ from .observations import choose_markers as choose_markers
 from .observations import nested_nodes as nested_nodes
 from .observations import observation_loss as observation_loss
 from .optimization import FitResult as FitResult
+from .optimization import describe_failure as describe_failure
 from .optimization import fit as fit
 from .parameters import Parametrization as Parametrization
 from .parameters import make_parametrization as make_parametrization
@@ -66,6 +79,17 @@ __all__ = [
     "Case",
     "CaseAux",
     "LoadCase",
+    "LoadPathCase",
+    "Moment",
+    "Observation",
+    "Points",
+    "Positions",
+    "Reaction",
+    "SolvedState",
+    "Surface",
+    "locate_points",
+    "fitted_values",
+    "describe_failure",
     "TrajectoryCase",
     "LameOf",
     "Material",

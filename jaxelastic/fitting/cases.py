@@ -11,7 +11,17 @@ The case protocol (:class:`Case`; :func:`~jaxelastic.fitting.fit` needs nothing 
 * ``evaluate(params, warm, solver, adjoint) -> (loss, CaseAux)``: the unweighted scalar
   misfit at the ψ parameters ``params``, pure, jit-able and reverse-mode differentiable
   (:func:`jaxelastic.solve` / :func:`jaxelastic.dynamics.rollout` differentiate by the
-  implicit function theorem), and a :class:`CaseAux` (new warm start, ``ok``, counts).
+  implicit function theorem), and a :class:`CaseAux` (new warm start, ``ok``, counts);
+* optionally ``residuals(params, warm, solver, adjoint) -> (r, CaseAux)``: the residual
+  vector whose squared norm is the loss, for the Gauss–Newton uncertainty of a fit
+  (differentiated in forward mode), and ``sigma_known``: whether ``r`` is weighted by the
+  measurement standard deviations (then ``loss = χ²``).
+
+A case is a pytree (its arrays are traced by the compiled objective): a frozen dataclass
+registered with :func:`jax.tree_util.register_dataclass`, as the cases here are.
+
+:class:`LoadPathCase` is one experiment as a sequence of load levels with observations of
+any kind (:mod:`jaxelastic.fitting.measurements`) at every level.
 """
 
 from __future__ import annotations
@@ -23,14 +33,17 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 
 from ..dynamics import Integrator, State, rollout
 from ..loads import Dirichlet
+from ..mechanics import forces
 from ..mechanics.potential import Potential
 from ..solvers import ImplicitAdjoint, Newton, PreparedSolver, Status, prepare_solver, solve
+from .measurements import Observation, SolvedState
 from .observations import observation_loss
 
-__all__ = ["Case", "CaseAux", "LoadCase", "TrajectoryCase"]
+__all__ = ["Case", "CaseAux", "LoadCase", "TrajectoryCase", "LoadPathCase"]
 
 
 class CaseAux(NamedTuple):
@@ -41,18 +54,25 @@ class CaseAux(NamedTuple):
         ok: bool scalar, every forward solve of the case converged (status SUCCESS).
         newton_steps: int scalar, total Newton iterations of the case.
         linear_iterations: int scalar, total linear-solver iterations of the case.
+        status: int scalar, the first failed solve's :class:`~jaxelastic.solvers.Status`
+            (0: all converged), or None (a case that does not report it).
+        level: int scalar, the first load level whose solve failed (−1: none), or None.
     """
 
     warm: Any
     ok: jax.Array
     newton_steps: jax.Array
     linear_iterations: jax.Array
+    status: Any = None
+    level: Any = None
 
 
 class Case(abc.ABC):
     """Abstract fitting case (see the module docstring for the protocol)."""
 
     weight: float
+    sigma_known: bool = False
+    """Whether :meth:`residuals` are weighted by measurement standard deviations."""
 
     @property
     @abc.abstractmethod
@@ -67,9 +87,16 @@ class Case(abc.ABC):
     def evaluate(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):
         """``(unweighted loss, CaseAux)`` at ψ parameters ``params``."""
 
-    def bind(self, solver: Newton) -> Newton | PreparedSolver:
-        """``solver`` as is (override to bind a host linear solver to the case)."""
+    def bind(self, solver: Newton) -> Newton | PreparedSolver | None:
+        """The solver ``evaluate`` receives: override to return
+        :func:`~jaxelastic.solvers.prepare_solver` ``(solver, mesh, bc)`` (a pytree, bound
+        once outside jit), or None for a case without solves; the default returns
+        ``solver`` as is, which the compiled objective refuses with this advice."""
         return solver
+
+    def residuals(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):
+        """``(r, CaseAux)`` with ``Σ r² = loss`` (optional; needed for the uncertainty)."""
+        raise NotImplementedError(f"{type(self).__name__} defines no residuals()")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,15 +133,29 @@ class LoadCase(Case):
         """``solver`` with its linear solver bound to this mesh and Dirichlet pattern."""
         return prepare_solver(solver, self.pot.mesh, self.bc)
 
-    def evaluate(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):
-        """(unweighted loss, :class:`CaseAux`) at ψ parameters ``params``."""
+    def _solve(self, params, warm, solver, adjoint):
         pot = self.pot.replace(params=params)
         sol = solve(pot, self.bc, x0=warm, solver=solver, adjoint=adjoint, throw=False)
-        loss = observation_loss(sol.x, self.observed, self.pot.mesh.points, self.nodes)
+        st = jnp.asarray(sol.status, jnp.int32)
+        ok = st == Status.SUCCESS
         aux = CaseAux(
-            sol.x, sol.status == Status.SUCCESS, sol.stats["steps"], sol.stats["linear_iterations"]
+            sol.x, ok, sol.stats["steps"], sol.stats["linear_iterations"], st, jnp.int32(-1)
         )
-        return loss, aux
+        return sol.x, aux
+
+    def evaluate(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):
+        """(unweighted loss, :class:`CaseAux`) at ψ parameters ``params``."""
+        x, aux = self._solve(params, warm, solver, adjoint)
+        return observation_loss(x, self.observed, self.pot.mesh.points, self.nodes), aux
+
+    def residuals(self, params, warm, solver: Newton, adjoint: ImplicitAdjoint):
+        """``(x[nodes] − observed)/‖observed − X[nodes]‖`` raveled (relative: σ unknown)."""
+        x, aux = self._solve(params, warm, solver, adjoint)
+        X = self.pot.mesh.points
+        if self.nodes is not None:
+            x, X = x[self.nodes], X[self.nodes]
+        scale = jnp.sqrt(jnp.sum((self.observed - X) ** 2))
+        return jnp.ravel((x - self.observed) / scale), aux
 
 
 jax.tree_util.register_dataclass(
@@ -220,3 +261,200 @@ jax.tree_util.register_dataclass(
     data_fields=["pot", "state0", "bc", "observed", "frames", "nodes", "weight"],
     meta_fields=["integ", "n_steps", "checkpoint"],
 )
+
+
+def _concrete(a) -> bool:
+    """Whether ``a`` is a user-given value (checked), not a leaf JAX rebuilt a case from."""
+    if isinstance(a, Tracer):
+        return False
+    return isinstance(a, np.ndarray | list | tuple | jax.Array)
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadPathCase(Case):
+    """One experiment as a sequence of load levels, observed at every level.
+
+    At level ``k`` the potential's external forces are ``s_k·f_ext`` and the prescribed
+    displacements ``s_k·(bc.values − X)``; the levels are solved in order, each from the
+    previous iterate's solution of the same level (the previous level's solution on the
+    first evaluation). A level whose solve fails is retried from the previous level's
+    solution in sub-steps (the increment halved up to ``max_cutbacks`` times); a level
+    still failing makes the case fail (``CaseAux.ok`` False, with its status and level),
+    never skipped. The solution of every level is then one differentiable
+    :func:`jaxelastic.solve` (the sub-steps only find its start), so the gradient goes
+    through every level by the implicit adjoint, one adjoint solve per level
+    (``jax.lax.scan`` over the levels: compiled once whatever their number).
+
+    The loss is the χ² misfit ``Σ_obs Σ_levels Σ ((pred − data)/σ)²`` of the
+    observations (:mod:`jaxelastic.fitting.measurements`).
+
+    Attributes:
+        pot: potential at load factor 1 (mesh, ``f_ext``, ψ); ``params`` is replaced.
+        bc: Dirichlet data at load factor 1.
+        factors: ``(n_levels,)`` load factors (any order; usually increasing).
+        observations: tuple of :class:`~jaxelastic.fitting.measurements.Observation`,
+            each with data for every level.
+        weight: weight of the case in the loss.
+        max_cutbacks: halvings of a failing level's increment before it counts as failed
+            (static).
+
+    Raises:
+        ValueError: (at construction) empty or non-finite factors, an observation whose
+            data do not have one entry per level, non-finite data, σ ≤ 0, or a contact
+            term (not supported).
+    """
+
+    pot: Potential
+    bc: Dirichlet
+    factors: Any
+    observations: tuple
+    weight: float = 1.0
+    max_cutbacks: int = dataclasses.field(default=4, metadata=dict(static=True))
+    sigma_known = True
+
+    def __post_init__(self):
+        if not _concrete(self.factors):
+            return
+        f = np.asarray(self.factors, dtype=np.float64)
+        object.__setattr__(self, "factors", f)
+        object.__setattr__(self, "observations", tuple(self.observations))
+        if f.ndim != 1 or f.size == 0 or not np.all(np.isfinite(f)):
+            raise ValueError(f"factors must be a non-empty 1-D list of numbers, got {f.tolist()}")
+        if not self.observations:
+            raise ValueError("a LoadPathCase needs at least one observation")
+        for i, o in enumerate(self.observations):
+            if not isinstance(o, Observation):
+                raise TypeError(f"observations[{i}] must be an Observation, got {type(o)}")
+            o.check()
+            if o.n_levels != f.size:
+                raise ValueError(
+                    f"observations[{i}] ({o.kind}) has data for {o.n_levels} load levels, "
+                    f"factors lists {f.size}"
+                )
+        if self.pot.contact is not None:
+            raise ValueError("a LoadPathCase does not support contact terms")
+        if int(self.max_cutbacks) < 0:
+            raise ValueError(f"max_cutbacks must be >= 0, got {self.max_cutbacks}")
+
+    @property
+    def mesh(self):
+        return self.pot.mesh
+
+    def initial_warm(self):
+        """``(positions (n_levels, n_nodes, dim), valid)``: rest positions, not valid (the
+        first evaluation starts every level from the previous one's solution)."""
+        X = jnp.asarray(self.pot.mesh.points)
+        return (jnp.broadcast_to(X, (len(self.factors), *X.shape)), jnp.asarray(False))
+
+    def bind(self, solver: Newton) -> Newton | PreparedSolver:
+        """``solver`` with its linear solver bound to this mesh and Dirichlet pattern."""
+        return prepare_solver(solver, self.pot.mesh, self.bc)
+
+    def at(self, s, params):
+        """``(potential, Dirichlet)`` at load factor ``s`` and ψ parameters ``params``."""
+        X = self.pot.mesh.points
+        f = self.pot.f_ext
+        pot = self.pot.replace(params=params, f_ext=None if f is None else s * f)
+        return pot, Dirichlet(self.bc.mask, X + s * (self.bc.values - X))
+
+    def predictions(self, params, warm, solver, adjoint: ImplicitAdjoint):
+        """``(predictions, CaseAux)``: per observation its predictions at every level
+        (leading axis: level); pure, jit-able, differentiable."""
+        xs_warm, valid = warm
+        X = self.pot.mesh.points
+        need_r = any(o.needs_reactions for o in self.observations)
+        datas = tuple(o.data for o in self.observations)
+
+        def level(carry, inp):
+            x_prev, s_prev = carry
+            s, xw, data_k = inp
+            pot, bc = self.at(s, params)
+            x0 = jnp.where(valid, xw, x_prev)
+            x_start, trials = _reach(self, params, solver, x0, x_prev, s_prev, s)
+            sol = solve(pot, bc, x0=x_start, solver=solver, adjoint=adjoint, throw=False)
+            R = None
+            if need_r:
+                R = -forces(pot.psi, sol.x, pot.mesh, pot.params)
+                R = R if pot.f_ext is None else R - pot.f_ext
+            state = SolvedState(sol.x, R, params, pot.mesh)
+            obs = self.observations
+            preds = tuple(o.predict(state, d) for o, d in zip(obs, data_k, strict=True))
+            st = jnp.asarray(sol.status, jnp.int32)
+            its = [jnp.asarray(sol.stats[k], jnp.int32) for k in ("steps", "linear_iterations")]
+            out = (preds, sol.x, st, *its, trials)
+            return (sol.x, s), out
+
+        s0 = jnp.zeros((), X.dtype)
+        factors = jnp.asarray(self.factors, X.dtype)
+        _, out = jax.lax.scan(level, (X, s0), (factors, xs_warm, datas))
+        preds, xs, st, steps, lin, trials = out
+        failed = st != Status.SUCCESS
+        first = jnp.argmax(failed)
+        aux = CaseAux(
+            warm=(xs, jnp.asarray(True)),
+            ok=~jnp.any(failed),
+            newton_steps=jnp.sum(steps) + jnp.sum(trials[:, 1]),
+            linear_iterations=jnp.sum(lin) + jnp.sum(trials[:, 2]),
+            status=jnp.where(jnp.any(failed), st[first], 0),
+            level=jnp.where(jnp.any(failed), first, -1).astype(jnp.int32),
+        )
+        return preds, aux
+
+    def residuals(self, params, warm, solver, adjoint: ImplicitAdjoint):
+        """``((pred − data)/σ`` of every observation and level, raveled; CaseAux)."""
+        preds, aux = self.predictions(params, warm, solver, adjoint)
+        r = [
+            jnp.ravel((p - o.target(o.data)) / o.sigma)
+            for p, o in zip(preds, self.observations, strict=True)
+        ]
+        return jnp.concatenate(r), aux
+
+    def evaluate(self, params, warm, solver, adjoint: ImplicitAdjoint):
+        """``(χ², CaseAux)`` at ψ parameters ``params``."""
+        r, aux = self.residuals(params, warm, solver, adjoint)
+        return jnp.sum(r * r), aux
+
+
+jax.tree_util.register_dataclass(
+    LoadPathCase,
+    data_fields=["pot", "bc", "factors", "observations", "weight"],
+    meta_fields=["max_cutbacks"],
+)
+
+
+def _reach(case: LoadPathCase, params, solver, x0, x_prev, s_prev, s):
+    """A converged start for level ``s`` (no derivatives): one solve from ``x0``; if it
+    fails, sub-steps from the previous level's ``(x_prev, s_prev)`` with the increment
+    halved on every failure, at most ``case.max_cutbacks`` times (either direction).
+    Returns ``(x, counts)``: the last converged positions and ``(trials, Newton steps,
+    linear iterations)``."""
+    stop = jax.lax.stop_gradient
+    params, x0, x_prev, s_prev, s = stop((params, x0, x_prev, s_prev, s))
+    max_cut = int(case.max_cutbacks)
+
+    one = jnp.ones((), s.dtype)
+
+    def cond(c):
+        _, t_done, _, cuts, _ = c
+        return (t_done < one) & (cuts <= max_cut)
+
+    def body(c):  # t ∈ [0, 1] goes from the previous level (s_prev) to this one (s)
+        x, t_done, dt, cuts, counts = c
+        t_try = jnp.minimum(one, t_done + dt)
+        pot, bc = case.at(s_prev + t_try * (s - s_prev), params)
+        start = jnp.where(counts[0] == 0, x0, x)
+        sol = solve(pot, bc, x0=start, solver=solver, throw=False)
+        ok = sol.status == Status.SUCCESS
+        its = [jnp.ones((), jnp.int32), sol.stats["steps"], sol.stats["linear_iterations"]]
+        its = jnp.stack([jnp.asarray(a, jnp.int32) for a in its])
+        return (
+            jnp.where(ok, sol.x, x),
+            jnp.where(ok, t_try, t_done),
+            jnp.where(ok, dt, 0.5 * dt),
+            cuts + jnp.where(ok, 0, 1),
+            counts + its,
+        )
+
+    init = (x_prev, jnp.zeros((), s.dtype), one, jnp.int32(0), jnp.zeros(3, jnp.int32))
+    x, _, _, _, counts = jax.lax.while_loop(cond, body, init)
+    return x, counts

@@ -10,20 +10,23 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..solvers import GradientError, ImplicitAdjoint, Newton, check_finite_gradients
 from .elastic import Material, material_parametrization
 from .parameters import Parametrization, make_parametrization
+from .uncertainty import Uncertainty, gauss_newton_uncertainty
 
 __all__ = [
     "FIT_SOLVER",
     "Objective",
     "bind_solvers",
     "cases_loss",
+    "check_cases",
     "make_objective",
     "parametrize",
 ]
@@ -56,6 +59,39 @@ def _value_and_grad(z, pz, cases, warms, solvers, adjoint):
 _forward = jax.jit(_cases_loss, static_argnums=(4,))
 
 
+def _residual_vector(z, pz: Parametrization, cases, warms, solvers, adjoint):
+    """``(√w_c · r_c)`` of every case concatenated (``Σ r² = Σ w_c loss_c``), auxs."""
+    params = pz.psi_params(z)
+    rs, auxs = [], []
+    for c, w, s in zip(cases, warms, solvers, strict=True):
+        r, aux = c.residuals(params, w, s, adjoint)
+        rs.append(jnp.sqrt(jnp.asarray(c.weight, r.dtype)) * r)
+        auxs.append(aux)
+    return jnp.concatenate(rs), tuple(auxs)
+
+
+@functools.partial(jax.jit, static_argnums=(6,))
+def _residual_jvp(z, dz, pz, cases, warms, solvers, adjoint):
+    """Residuals and their directional derivative along ``dz`` (forward mode)."""
+    fun = lambda z: _residual_vector(z, pz, cases, warms, solvers, adjoint)
+    (r, auxs), (dr, _) = jax.jvp(fun, (z,), (dz,))
+    return r, dr, auxs
+
+
+def fitted_values(pz: Parametrization, z) -> tuple[jax.Array, tuple[str, ...]]:
+    """The fitted parameters at ``z`` in their own units, ``(p,)`` (region leaves one value
+    per region), and their names (``"c10"``, ``"E[1]"``, …)."""
+    leaves = jax.tree_util.tree_structure(pz.init).flatten_up_to(pz.from_unconstrained(z))
+    vals, names = [], []
+    for v, n, t in zip(leaves, pz.names, pz.transforms, strict=True):
+        if not t.fitted:
+            continue
+        a = jnp.ravel(jnp.asarray(v))
+        vals.append(a)
+        names += [n] if jnp.ndim(v) == 0 else [f"{n}[{i}]" for i in range(a.size)]
+    return jnp.concatenate(vals), tuple(names)
+
+
 def cases_loss(params, cases, warms, solvers, adjoint):
     """Jit-compiled ``(Σ_c w_c·loss_c, auxs)`` at ψ parameters ``params`` (forward only).
 
@@ -68,10 +104,40 @@ def cases_loss(params, cases, warms, solvers, adjoint):
     return _forward(params, tuple(cases), tuple(warms), tuple(solvers), adjoint)
 
 
+def check_cases(cases) -> None:
+    """Raise TypeError, saying what to do, for a case that is not a JAX pytree or lacks
+    the case protocol's methods (JAX's own error names neither the case nor the fix)."""
+    for i, c in enumerate(cases):
+        missing = [m for m in ("evaluate", "initial_warm", "mesh") if not hasattr(c, m)]
+        if missing:
+            raise TypeError(
+                f"case {i} ({type(c).__name__}) lacks {', '.join(missing)} of the case "
+                "protocol (jaxelastic.fitting.Case)"
+            )
+        leaves = jax.tree_util.tree_leaves(c)
+        if len(leaves) == 1 and leaves[0] is c:
+            raise TypeError(
+                f"case {i} ({type(c).__name__}) is not a registered JAX pytree, so the "
+                "compiled objective cannot take it as an argument: make it a frozen "
+                "dataclass and register it with jax.tree_util.register_dataclass(cls, "
+                "data_fields=[...arrays...], meta_fields=[...static settings...]), as "
+                "jaxelastic.fitting.LoadCase does"
+            )
+
+
 def bind_solvers(cases, solver: Newton) -> tuple:
     """One :class:`~jaxelastic.solvers.PreparedSolver` per case: the Newton settings with
     the linear solver's state for the case's mesh and mask (outside jit)."""
-    return tuple(c.bind(solver) for c in cases)
+    bound = tuple(c.bind(solver) for c in cases)
+    for i, (c, b) in enumerate(zip(cases, bound, strict=True)):
+        leaves = jax.tree_util.tree_leaves(b)
+        if len(leaves) == 1 and leaves[0] is b and not hasattr(b, "dtype"):
+            raise TypeError(
+                f"case {i} ({type(c).__name__}).bind returned {type(b).__name__}, which the "
+                "compiled objective cannot take: return jaxelastic.solvers.prepare_solver("
+                "solver, mesh, bc) for a case that solves, or None for one that does not"
+            )
+    return bound
 
 
 class Objective(NamedTuple):
@@ -115,6 +181,46 @@ class Objective(NamedTuple):
     def params(self, z):
         """Region-form parameters at ``z`` (what a fit reports)."""
         return self.pz.from_unconstrained(jnp.asarray(z))
+
+    @property
+    def sigma_known(self) -> bool:
+        """Whether every case weighs its residuals by measurement standard deviations."""
+        return all(bool(getattr(c, "sigma_known", False)) for c in self.cases)
+
+    def residuals_and_jacobian(self, z, warms=None):
+        """``(r (m,), J (m, p))`` at ``z``: the residuals and their Jacobian with respect to
+        the fitted parameters in their own units (:func:`fitted_values`), one
+        forward-mode pass through the solves per parameter (implicit tangents).
+
+        Raises:
+            GradientError: a solve failed. NotImplementedError: a case has no residuals.
+        """
+        z = jnp.asarray(z)
+        warms = self.initial_warms() if warms is None else tuple(warms)
+        a = self.adjoint
+        fwd = ImplicitAdjoint(rtol=a.rtol, max_iter=a.max_iter, mode="forward")
+        cols, r = [], None
+        for j in range(z.shape[0]):
+            dz = jnp.zeros_like(z).at[j].set(1.0)
+            r, dr, auxs = _residual_jvp(z, dz, self.pz, self.cases, warms, self.solvers, fwd)
+            bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
+            if bad:
+                raise GradientError(f"forward solve failed in case(s) {bad} at the optimum")
+            cols.append(np.asarray(dr))
+        D = np.asarray(jax.jacfwd(lambda z: fitted_values(self.pz, z)[0])(z))  # dθ/dz
+        Jz = np.stack(cols, axis=1)
+        return np.asarray(r), np.linalg.solve(D.T, Jz.T).T
+
+    def uncertainty(self, z, warms=None) -> tuple[Uncertainty, tuple[str, ...], np.ndarray, Any]:
+        """``(Uncertainty, names, values, residuals)`` of the fitted parameters at ``z``
+        (the residual vector of :meth:`residuals_and_jacobian`; Gauss–Newton,
+        :func:`~jaxelastic.fitting.gauss_newton_uncertainty`; scaled by the reduced χ²
+        unless every case's σ are measurement standard deviations; the regulariser is
+        not part of it)."""
+        r, J = self.residuals_and_jacobian(z, warms)
+        vals, names = fitted_values(self.pz, jnp.asarray(z))
+        unc = gauss_newton_uncertainty(J, r, known_sigma=self.sigma_known)
+        return unc, names, np.asarray(vals), r
 
 
 def parametrize(
@@ -191,6 +297,7 @@ def make_objective(
     cases = tuple(cases)
     if not cases:
         raise ValueError("fit needs at least one case")
+    check_cases(cases)
     pz = parametrize(
         init,
         transforms=transforms,

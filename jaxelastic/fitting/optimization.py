@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import time
+import warnings
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -18,11 +19,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..solvers import GradientError, ImplicitAdjoint, Newton
+from ..solvers import GradientError, ImplicitAdjoint, Newton, Status
 from .elastic import Material
-from .objective import FIT_SOLVER, Objective, make_objective
+from .objective import FIT_SOLVER, Objective, fitted_values, make_objective
+from .uncertainty import Uncertainty
 
-__all__ = ["FitResult", "fit"]
+__all__ = ["FitResult", "fit", "describe_failure"]
 
 _CONVERGED = ("gtol", "ftol", "xtol", "roundoff")
 _ARMIJO = 1e-4
@@ -62,10 +64,13 @@ class FitResult(NamedTuple):
             shared scalars, ``(n_regions,)`` arrays per region), e.g. a :class:`Material`.
         E, nu: the fitted (E, ν) when ``init`` is a :class:`Material`, else None.
         loss: final loss.
-        converged: a stopping criterion met (else ``max_iter`` reached or stalled).
+        converged: a stopping criterion met (else ``max_iter`` reached, stalled or failed
+            solves).
         stop_reason: ``"gtol"``, ``"ftol"``, ``"xtol"``, ``"roundoff"`` (the line search's
-            predicted decrease fell below 1e-12 × loss: no measurable progress is possible;
-            counted as converged), ``"stalled"`` (line search or failed solves),
+            predicted decrease fell below 1e-12 × loss with every trial solved: no
+            measurable progress is possible; counted as converged), ``"solve_failed"``
+            (the last line search ended on trial points whose solves failed: not
+            converged, see ``failures``), ``"stalled"`` (no acceptable step),
             ``"max_iter"`` or ``"callback"`` (the callback asked to stop).
         iterations: optimiser iterations k.
         loss_history: ``(k + 1,)`` loss at each iterate.
@@ -79,6 +84,15 @@ class FitResult(NamedTuple):
         solutions: final warm start (equilibrium positions) per case.
         z: final unconstrained vector.
         wall_time: seconds, including compilation.
+        failures: one dict per trial point whose solves failed: ``iteration``, ``case``
+            (index), ``status`` (a :class:`~jaxelastic.solvers.Status` name), ``level``
+            (load level of a :class:`~jaxelastic.fitting.LoadPathCase`, else None) and
+            ``params`` (name → value of the fitted parameters there).
+        names: names of the fitted parameters (``"E"``, ``"c10"``, ``"E[1]"``, …).
+        uncertainty: the Gauss–Newton :class:`~jaxelastic.fitting.Uncertainty` at the
+            optimum in the order of ``names`` (None when not computed).
+        residuals: ``(m,)`` the cases' residual vectors at the optimum, concatenated in
+            case order (``√w·(pred − data)/σ`` for measurements), with the uncertainty.
     """
 
     material: Any
@@ -96,11 +110,29 @@ class FitResult(NamedTuple):
     solutions: list
     z: np.ndarray
     wall_time: float
+    failures: tuple = ()
+    names: tuple = ()
+    uncertainty: Uncertainty | None = None
+    residuals: np.ndarray | None = None
 
     @property
     def params(self):
         """Alias of :attr:`material` (the fitted parameter pytree)."""
         return self.material
+
+    @property
+    def standard_errors(self) -> dict:
+        """Fitted parameter name → standard error (empty without an uncertainty)."""
+        if self.uncertainty is None:
+            return {}
+        return dict(zip(self.names, self.uncertainty.standard_errors.tolist(), strict=True))
+
+
+def describe_failure(f: dict) -> str:
+    """One line naming a failed trial: case, status, load level and parameters."""
+    level = "" if f["level"] is None else f" at load level {f['level']}"
+    at = ", ".join(f"{k} = {v:.6g}" for k, v in f["params"].items())
+    return f"case {f['case']}: {f['status']}{level} (iteration {f['iteration']}, at {at})"
 
 
 def _param_row(params) -> np.ndarray:
@@ -123,14 +155,31 @@ class _Tracker:
         self.obj = obj
         self.counts = np.zeros((2, len(obj.cases)), int)  # Newton / linear its this iterate
         self.hist = dict(loss=[], p=[], g=[], nw=[], lin=[])
+        self.failures: list[dict] = []
 
     def evaluate(self, z, warms):
         """``(loss, auxs, grad, ok)`` at z; ok: every solve converged, all finite."""
         (f, auxs), g = self.obj.value_and_grad(z, warms, check=False)
         self.counts[0] += [int(a.newton_steps) for a in auxs]
         self.counts[1] += [int(a.linear_iterations) for a in auxs]
-        ok = all(bool(a.ok) for a in auxs) and bool(jnp.all(jnp.isfinite(g)))
+        solved = [bool(a.ok) for a in auxs]
+        if not all(solved):
+            self._failed(z, auxs, solved)
+        ok = all(solved) and bool(jnp.all(jnp.isfinite(g)))
         return float(f), auxs, g, ok and np.isfinite(float(f))
+
+    def _failed(self, z, auxs, solved) -> None:
+        vals, names = fitted_values(self.obj.pz, jnp.asarray(z))
+        params = dict(zip(names, np.asarray(vals).tolist(), strict=True))
+        for i, (a, ok) in enumerate(zip(auxs, solved, strict=True)):
+            if ok:
+                continue
+            st = getattr(a, "status", None)
+            level = getattr(a, "level", None)
+            name = "failed" if st is None else Status(int(st)).name
+            lv = None if level is None or int(level) < 0 else int(level)
+            it = len(self.hist["loss"])
+            self.failures.append(dict(iteration=it, case=i, status=name, level=lv, params=params))
 
     def record(self, z, f, g):
         h = self.hist
@@ -157,7 +206,7 @@ def _step(tr: _Tracker, z, f, d, slope, warms, line_search: bool):
     """Backtracking Armijo line search (L-BFGS) or step halving on failed solves (others).
 
     Returns ``(accepted, t)``: accepted is ``(z, f, auxs, g)`` or None (no acceptable
-    step), t the last step length tried.
+    step), t the last step length tried; ``tr.failures`` records every failed trial.
     """
     t = 1.0
     for _ in range(40):
@@ -191,8 +240,11 @@ def _optimize(tr: _Tracker, optimizer, line_search, z, tol, callback, max_iter, 
     gtol, ftol, xtol = tol
     f, auxs, g, ok = tr.evaluate(z, tr.obj.initial_warms())
     if not ok:
-        bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
-        raise GradientError(f"forward solve failed at the initial guess in case(s) {bad}")
+        what = "; ".join(describe_failure(x) for x in tr.failures) or "non-finite loss/gradient"
+        raise GradientError(
+            f"forward solve failed at the initial guess: {what}. Start closer to the data "
+            "(initial parameters), or apply the load in more levels"
+        )
     warms = tuple(a.warm for a in auxs)
     tr.record(z, f, g)
     state = optimizer.init(z)
@@ -207,8 +259,11 @@ def _optimize(tr: _Tracker, optimizer, line_search, z, tol, callback, max_iter, 
         if k >= max_iter:
             return z, k, "max_iter", warms
         d, state, slope = _direction(update, optimizer, g, state, z, line_search)
+        n_failed = len(tr.failures)
         accepted, t = _step(tr, z, f, d, slope, warms, line_search)
         if accepted is None:
+            if len(tr.failures) > n_failed:  # the trials failed: never convergence
+                return z, k, "solve_failed", warms
             small = line_search and -slope * t <= _ROUNDOFF * abs(f)
             return z, k, "roundoff" if small else "stalled", warms
         z, f, auxs, g = accepted
@@ -244,6 +299,7 @@ def fit(
     adjoint: ImplicitAdjoint = ImplicitAdjoint(),
     progress: bool = False,
     callback=None,
+    uncertainty: bool | None = None,
 ) -> FitResult:
     """Fit material parameters (any ψ pytree, or E and ν) to observations in several cases.
 
@@ -286,6 +342,10 @@ def fit(
         callback: called after every accepted iteration with ``(k, params, loss)``
             (params in ``init``'s structure); return True to stop there (stop reason
             ``"callback"``, e.g. on Ctrl-C, keeping every iterate so far).
+        uncertainty: compute the Gauss–Newton uncertainty at the optimum
+            (:attr:`FitResult.uncertainty`; one forward-mode pass through the solves per
+            fitted value); default None: when every case weighs its residuals by
+            measurement σ (e.g. :class:`~jaxelastic.fitting.LoadPathCase`).
 
     Long because: the docstring documents 19 arguments; the body is ten lines.
 
@@ -303,7 +363,20 @@ def fit(
     tols = (gtol, ftol, xtol)
     run = functools.partial(_optimize, tr, optimizer, line_search, obj.z0, tols, callback)
     z, k, reason, warms = _with_progress(run, max_iter, progress)
-    return _result(tr, z, k, reason, warms, time.perf_counter() - t_start)
+    if reason == "solve_failed":
+        last = [describe_failure(f) for f in tr.failures[-len(obj.cases) :]]
+        warnings.warn(
+            "fit stopped without converging: the trial solves of its last line search "
+            f"failed ({'; '.join(last)}); the material may be unstable there: bound the "
+            "parameters (transforms), start elsewhere or use more load levels",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    unc = r = None
+    if uncertainty or (uncertainty is None and obj.sigma_known):
+        unc, _, _, r = obj.uncertainty(z, warms)
+    res = _result(tr, z, k, reason, warms, time.perf_counter() - t_start)
+    return res._replace(uncertainty=unc, residuals=r)
 
 
 def _with_progress(run, max_iter: int, progress: bool):
@@ -343,4 +416,6 @@ def _result(tr: _Tracker, z, k: int, reason: str, warms, wall: float) -> FitResu
         solutions=list(warms),
         z=np.asarray(z),
         wall_time=wall,
+        failures=tuple(tr.failures),
+        names=fitted_values(tr.obj.pz, jnp.asarray(z))[1],
     )

@@ -7,7 +7,7 @@ material-parameter pytree is ``value = forward(z, ref)``:
   same at any scale; ``ref`` is the initial value unless a fixed ``scale`` is given, so
   ``z = 0`` at the start);
 * :class:`Bounded`: ``value = lo + (hi − lo)·sigmoid(z)`` (in the open interval);
-* :class:`Free`: ``value = z`` (identity, unconstrained);
+* :class:`Free`: ``value = z`` or ``scale·z`` (unconstrained);
 * :class:`Fixed`: not fitted, held at its initial value.
 
 Transforms are frozen and hashable (static under jit).
@@ -120,13 +120,26 @@ class Bounded(Transform):
 
 @dataclasses.dataclass(frozen=True)
 class Free(Transform):
-    """Identity: ``value = z`` (unconstrained)."""
+    """Unconstrained: ``value = z``, or ``value = scale·z`` with a ``scale`` (the
+    parameter's typical magnitude, in its units, so that z is of order one).
+
+    Attributes:
+        scale: None (identity) or a positive float.
+    """
+
+    scale: float | None = None
 
     def forward(self, z, ref):
-        return z
+        return z if self.scale is None else self.scale * z
 
     def inverse(self, value, ref):
-        return jnp.asarray(value)
+        v = jnp.asarray(value)
+        return v if self.scale is None else v / self.scale
+
+    def check(self, value, name: str) -> None:
+        super().check(value, name)
+        if self.scale is not None and not float(self.scale) > 0:
+            raise ValueError(f"parameter {name}: Free(scale) must be > 0, got {self.scale}")
 
 
 @dataclasses.dataclass(frozen=True)

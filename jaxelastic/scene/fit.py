@@ -22,12 +22,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import fitting
-from ..materials import Lame
+from ..materials import FAMILIES, FAMILY_POSITIVE_KEYS, Lame
 from ..solvers import GradientError, SolveError
 from . import interrupt, memory
 from .errors import SceneError
 from .interrupt import Interrupted
 from .load import Scene, load_scene
+from .measurements import check_nodes, read_observation
 from .outputs import (
     FIT_OUTPUTS,
     finish_summary,
@@ -66,30 +67,38 @@ def _per_region(x, n: int) -> np.ndarray:
 
 def _load_positions(scene: Scene, key: str, path: str, dim: int):
     """Raw ``(positions, nodes or None)`` of a .npy / .npz / .csv file."""
+    if os.path.getsize(path) == 0:
+        raise scene.error(f"{key}: {path!r} is empty")
     if path.endswith(".npy"):
         return np.load(path), None
     if path.endswith(".npz"):
         with np.load(path) as z:
             if "positions" not in z:
-                raise scene.error(f"{key}: {path!r} has no array 'positions' (has {list(z)})")
+                have = ", ".join(z.files) or "no arrays: an empty file"
+                raise scene.error(f"{key}: {path!r} has no array 'positions' (has {have})")
             return z["positions"], (z["nodes"] if "nodes" in z else None)
     if path.endswith((".csv", ".txt")):
         a = np.loadtxt(path, delimiter="," if path.endswith(".csv") else None, ndmin=2)
+        if a.size == 0:
+            raise scene.error(f"{key}: {path!r} has no data rows")
         if a.shape[1] != dim + 1:
-            raise scene.error(f"{key}: {path!r} must have columns node, x, y[, z] ({dim + 1})")
+            raise scene.error(
+                f"{key}: {path!r} must have {dim + 1} columns node, x, y[, z]; got {a.shape[1]}"
+            )
         return a[:, 1:], a[:, 0]
     raise scene.error(f"{key}: {path!r} must be a .npy, .npz or .csv file")
 
 
-def read_observed(scene: Scene, key: str, path: str, n_nodes: int, dim: int):
+def read_observed(scene: Scene, key: str, path: str, n_nodes: int, dim: int, rest=None):
     """Observed positions ``(n_obs, dim)`` and their nodes ``(n_obs,)`` from a file.
 
     ``.npy``: ``(n_nodes, dim)`` all nodes; ``.npz``: ``positions`` and optional ``nodes``;
     ``.csv``: rows ``node, x, y[, z]``.
 
     Raises:
-        SceneError: (naming ``key``) a missing or unreadable file, wrong shapes, node
-            indices out of range, non-finite positions.
+        SceneError: (naming ``key``, the file and the row) a missing, empty or unreadable
+            file, wrong shapes, node indices out of range or repeated, non-finite
+            positions, positions equal to the rest shape ``rest`` ``(n_nodes, dim)``.
     """
     if not os.path.isfile(path):
         raise scene.error(f"{key}: no such file {path!r}")
@@ -98,24 +107,27 @@ def read_observed(scene: Scene, key: str, path: str, n_nodes: int, dim: int):
     except (OSError, ValueError) as e:
         raise scene.error(f"{key}: cannot read {path!r}: {e}") from None
     pos = np.asarray(pos, float)
+    where = f"{key} ({path!r})"
     if nodes is None:
         if pos.shape != (n_nodes, dim):
             raise scene.error(
-                f"{key}: expected positions of all {n_nodes} nodes ({n_nodes}, {dim}), "
-                f"got {pos.shape}"
+                f"{where}: positions of all {n_nodes} nodes, shape ({n_nodes}, {dim}), "
+                f"expected without 'nodes'; got shape {pos.shape}"
             )
         nodes = np.arange(n_nodes)
-    nodes = np.asarray(nodes)
-    if nodes.ndim != 1 or not np.all(nodes == np.round(nodes)):
-        raise scene.error(f"{key}: node indices must be integers")
-    nodes = nodes.astype(np.int64)
-    if pos.shape != (nodes.size, dim) or nodes.min() < 0 or nodes.max() >= n_nodes:
+    nodes = check_nodes(scene, where, nodes, n_nodes)
+    if pos.shape != (nodes.size, dim):
         raise scene.error(
-            f"{key}: {nodes.size} node indices in [0, {n_nodes}) with positions "
-            f"({nodes.size}, {dim}) expected, got {pos.shape}"
+            f"{where}: {nodes.size} nodes need positions of shape ({nodes.size}, {dim}); "
+            f"got {pos.shape}"
         )
-    if not np.isfinite(pos).all():
-        raise scene.error(f"{key}: positions must be finite")
+    bad = np.flatnonzero(~np.isfinite(pos).all(axis=1))
+    if bad.size:
+        raise scene.error(f"{where}: row {int(bad[0])} (node {int(nodes[bad[0]])}) is not finite")
+    if rest is not None:
+        X = np.asarray(rest)[nodes]
+        if np.allclose(pos, X, rtol=0.0, atol=1e-12 * max(float(np.ptp(X)), 1e-300)):
+            raise scene.error(f"{where}: the positions equal the rest shape (nothing moved)")
     return pos, nodes
 
 
@@ -205,7 +217,7 @@ def _file_targets(scene: Scene, mesh):
         sources.append(os.path.join(scene.base_dir, f))
     observed, avail = [], None
     for key, path in zip(keys, sources, strict=True):
-        pos, nodes = read_observed(scene, key, path, mesh.n_nodes, mesh.dim)
+        pos, nodes = read_observed(scene, key, path, mesh.n_nodes, mesh.dim, mesh.points)
         full = np.full((mesh.n_nodes, mesh.dim), np.nan)
         full[nodes] = pos
         observed.append(full)
@@ -424,14 +436,19 @@ def run_fit(scene, out_dir, progress: bool = True) -> dict:
     try:
         t0 = time.perf_counter()
         summary["completed"] = "nothing; interrupted during the build"
-        with interrupt.immediate():
-            builts = [build(s) for s in _case_scenes(scene)]
+        measured = _fit_spec(scene).measured
+        with interrupt.immediate():  # measured: the [[fit.case]] entries are the cases
+            builts = [build(s) for s in _case_scenes(scene)[1 if measured else 0 :]]
         summary["completed"] = "the build; interrupted during the target solves"
         mesh = builts[0].mesh
         summary["mesh"] = dict(
             dim=mesh.dim, n_nodes=mesh.n_nodes, n_cells=mesh.n_cells, element=mesh.element
         )
         summary["timings"]["build"] = time.perf_counter() - t0
+        if measured:
+            _measured_fit(scene, out, builts, progress, summary)
+            del summary["completed"]
+            return finish_summary(path, summary, t_start, status="ok", interrupted=False)
         labels, n_reg = _regions(scene, mesh, summary)
         cases, markers, arrays = _observe(scene, builts, labels, n_reg, progress, summary)
         _fit_and_write(scene, out, cases, markers, arrays, labels, n_reg, progress, summary)
@@ -458,6 +475,199 @@ def _interrupted(e: KeyboardInterrupt, out: str, path: str, summary: dict, t_sta
 
 
 # ----------------------------------------------------------------------------------------
+# measurements over load paths ([[fit.case.observation]])
+# ----------------------------------------------------------------------------------------
+
+
+def transform_of(name: str, value: float) -> fitting.Transform:
+    """The transform of a rubber/tissue parameter by its meaning: moduli, bulk moduli and
+    limits that must be positive (:data:`~jaxelastic.materials.FAMILY_POSITIVE_KEYS`,
+    and ``k1``) are ``Positive``; the HGO dispersion is ``Bounded(0, 1/3)``; the others
+    (``c01``, ``c20``, ``c30``, Ogden ``mu_i``, ``alpha_i``), whose sign the law does not
+    fix, are ``Free`` with the initial magnitude as scale."""
+    if name in FAMILY_POSITIVE_KEYS or name == "k1":
+        return fitting.Positive()
+    if name == "kappa_dispersion":
+        return fitting.Bounded(0.0, 1.0 / 3.0)
+    return fitting.Free(scale=abs(float(value)) or 1.0)
+
+
+def _measured_init(scene: Scene, bt: Built):
+    """``(init, transforms, fields)`` for :func:`jaxelastic.fitting.fit`."""
+    cfg, model = _fit_spec(scene), scene.spec.material.model
+    if model not in FAMILIES:
+        E, nu = (float(np.atleast_1d(getattr(cfg.initial, k))[0]) for k in ("E", "nu"))
+        return fitting.Material(E, nu), None, tuple(cfg.fields)
+    vals = bt.params._asdict()
+    for k in cfg.fields:
+        vals[k] = float(getattr(cfg.initial, k))
+    tr = {k: transform_of(k, v) if k in cfg.fields else fitting.Fixed() for k, v in vals.items()}
+    kind = type(bt.params)
+    return kind(**vals), kind(**tr), None
+
+
+def _measured_cases(scene: Scene, builts: list[Built]) -> list:
+    cfg = _fit_spec(scene)
+    cases = []
+    for i, (c, bt) in enumerate(zip(cfg.case, builts, strict=True)):
+        key = f"[fit.case][{i}]"
+        obs = tuple(
+            read_observation(scene, f"{key}.observation[{j}]", o, c, bt)
+            for j, o in enumerate(c.observation)
+        )
+        try:
+            factors = np.asarray(c.load_factors, dtype=np.float64)
+            cases.append(fitting.LoadPathCase(bt.potential, bt.bc, factors, obs, c.weight))
+        except (ValueError, TypeError) as e:
+            raise scene.error(f"{key}: {e}") from None
+    return cases
+
+
+def _observation_report(cases, residuals) -> tuple[list, list]:
+    """Per case, per observation: kind, σ, RMS residual (data units), χ²; and the
+    predictions ``(n_levels, ...)`` rebuilt from the residuals (``data + σ r``)."""
+    reports, preds, i = [], [], 0
+    for c in cases:
+        rep, pr = [], []
+        for o in c.observations:
+            target = np.asarray(o.target(o.data))
+            r = np.asarray(residuals[i : i + target.size]).reshape(target.shape)
+            i += target.size
+            sigma = float(o.sigma)
+            rep.append(
+                dict(
+                    kind=o.kind,
+                    sigma=sigma,
+                    n_values=int(target.size),
+                    rms=float(np.sqrt(np.mean((sigma * r) ** 2))),
+                    chi2=float(np.sum(r * r)),
+                )
+            )
+            pr.append(target + sigma * r)
+        reports.append(rep)
+        preds.append(pr)
+    return reports, preds
+
+
+def _measured_fit(scene: Scene, out: str, builts: list[Built], progress: bool, summary: dict):
+    """Read the measurements, fit, write fit.png and the summary's result (in place)."""
+    cfg, spec = _fit_spec(scene), scene.spec
+    cases = _measured_cases(scene, builts)
+    init, transforms, fields = _measured_init(scene, builts[0])
+    n_levels = sum(len(c.factors) for c in cases)
+    log(
+        progress,
+        f"fitting {', '.join(cfg.fields)} on {len(cases)} case(s), {n_levels} "
+        "load levels (the first iterations include compilation) ...",
+        "jaxelastic fit",
+    )
+    solver = newton_of(spec.solver)
+    t0 = time.perf_counter()
+    summary["completed"] = "the build; interrupted during the optimiser"
+
+    def at_iteration(k, params, loss) -> bool:
+        interrupt.at_boundaries()
+        summary["completed"] = f"the build and {k} optimiser iteration(s)"
+        return interrupt.requested() is not None
+
+    with interrupt.immediate():
+        res = fitting.fit(
+            cases, init, transforms=transforms, fields=fields,
+            plane=spec.material.plane or "strain", optimizer=cfg.optimizer,
+            learning_rate=cfg.learning_rate, max_iter=cfg.max_iter, gtol=cfg.gtol,
+            solver=solver.replace(rtol=min(solver.rtol, 1e-10)), progress=progress,
+            callback=at_iteration, uncertainty=True,
+        )  # fmt: skip
+    summary["timings"]["fit_incl_compile"] = time.perf_counter() - t0
+    _measured_summary(res, cases, cfg, summary)
+    png = os.path.join(out, "fit.png")
+    save_png(_measured_figure(res, cases, summary, f"{scene.name}: fit"), png)
+    path = os.path.join(out, "summary.json")
+    summary["outputs"] = dict(directory=out, summary=path, png=[png])
+    if res.stop_reason == "callback":
+        interrupt.check()
+
+
+def _measured_summary(res: fitting.FitResult, cases, cfg, summary: dict) -> None:
+    values = [float(np.asarray(getattr(res.params, n))) for n in res.names]
+    unc = res.uncertainty
+    assert unc is not None and res.residuals is not None  # fit(..., uncertainty=True)
+    reports, _ = _observation_report(cases, res.residuals)
+    summary["fitted"] = dict(zip(res.names, values, strict=True))
+    summary["standard_errors"] = dict(zip(res.names, unc.standard_errors.tolist(), strict=True))
+    summary["correlation"] = unc.correlation.tolist()
+    summary["uncertainty"] = dict(
+        condition_number=unc.condition_number, rank=unc.rank, reduced_chi2=unc.reduced_chi2
+    )
+    summary["cases"] = [
+        dict(load_factors=list(c.load_factors), overrides=dict(c.set), weight=c.weight,
+             observations=[dict(file=o.file, **r) for o, r in zip(c.observation, rep, strict=True)])
+        for c, rep in zip(cfg.case, reports, strict=True)
+    ]  # fmt: skip
+    summary["initial"] = {k: getattr(cfg.initial, k) for k in cfg.fields}
+    summary["held"] = {  # e.g. the bulk modulus kappa: part of the model, held fixed
+        k: float(v)
+        for k, v in res.params._asdict().items()
+        if k not in res.names and np.ndim(v) == 0
+    }
+    summary["result"] = dict(
+        loss=float(res.loss),
+        converged=bool(res.converged),
+        stop_reason=res.stop_reason,
+        iterations=int(res.iterations),
+        failures=[fitting.describe_failure(f) for f in res.failures],
+    )
+    P = np.asarray(res.param_history)
+    summary["history"] = dict(loss=res.loss_history, params=P, grad_norm=res.grad_norm_history)
+
+
+def _measured_figure(res: fitting.FitResult, cases, summary: dict, title: str):
+    """Each observation's data against the fitted model, and the loss history."""
+    from matplotlib.figure import Figure
+
+    _, preds = _observation_report(cases, res.residuals)
+    panels = [(c, o, p) for c, pc in zip(cases, preds, strict=True)
+              for o, p in zip(c.observations, pc, strict=True)]  # fmt: skip
+    fig = Figure(figsize=(3.6 * (len(panels) + 1), 3.4))
+    axes = fig.subplots(1, len(panels) + 1, squeeze=False)[0]
+    for ax, (c, o, p) in zip(axes, panels, strict=False):
+        _observation_panel(ax, c, o, np.asarray(p))
+    ax = axes[-1]
+    ax.semilogy(np.maximum(res.loss_history, 1e-300), "o-", ms=3)
+    se = summary["standard_errors"]
+    text = "\n".join(f"{k} = {v:.4g} ± {se[k]:.2g}" for k, v in summary["fitted"].items())
+    ax.set(xlabel="iteration", ylabel="χ²", title="loss")
+    ax.text(0.95, 0.95, text, transform=ax.transAxes, ha="right", va="top", fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def _observation_panel(ax, case, o, pred) -> None:
+    f = np.asarray(case.factors)
+    data = np.asarray(o.target(o.data))
+    if o.kind in ("reaction", "moment"):
+        ax.plot(f, data, "o", label="measured")
+        ax.plot(f, pred, "-", label="fitted model")
+        ax.set(xlabel="load factor", ylabel="force [N]", title=f"{o.kind}")
+        ax.legend(fontsize=8)
+        return
+    if o.kind == "points":
+        r = np.linalg.norm(pred[-1] - data[-1], axis=-1)
+        X = np.asarray(o.rest)
+        sc = ax.scatter(X[:, 0], X[:, 1], c=r, s=18, cmap="viridis")
+        ax.figure.colorbar(sc, ax=ax, label="|residual| [m], last level")
+        ax.set(xlabel="X [m]", ylabel="Y [m]", title="DIC points: residuals", aspect="equal")
+        return
+    if o.kind == "surface":
+        ax.hist(np.ravel(pred), bins=30)
+        ax.set(xlabel="distance to the fitted surface [m]", ylabel="points", title="surface")
+        return
+    ax.plot(np.ravel(data), np.ravel(pred), ".", ms=3)
+    ax.set(xlabel="measured [m]", ylabel="fitted [m]", title=o.kind)
+
+
+# ----------------------------------------------------------------------------------------
 # command-line summary
 # ----------------------------------------------------------------------------------------
 
@@ -466,8 +676,26 @@ def _fmt(x) -> str:
     return ", ".join(f"{a:.6g}" for a in np.atleast_1d(x))
 
 
+def _measured_highlights(s: dict) -> str:
+    r = s["result"]
+    lines = [
+        f"fit of scene {s['scene']['name']!r}: {s['status']} ({r['stop_reason']}, "
+        f"{r['iterations']} iterations, chi2 {r['loss']:.4g})"
+    ]
+    se = s["standard_errors"]
+    lines += [f"  {k} = {v:.6g} ± {se[k]:.2g}" for k, v in s["fitted"].items()]
+    for i, c in enumerate(s["cases"]):
+        for j, o in enumerate(c["observations"]):
+            lines.append(f"  case {i} observation {j} ({o['kind']}): RMS residual {o['rms']:.3g}")
+    lines += [f"  failed trial: {f}" for f in r["failures"][-3:]]
+    lines.append(f"  total {s['timings']['total']:.1f} s; outputs in {s['outputs']['directory']}")
+    return "\n".join(lines)
+
+
 def highlights(s: dict) -> str:
     """A few lines summarising a fit summary (for the command line)."""
+    if "fitted" in s:
+        return _measured_highlights(s)
     r = s["result"]
     lines = [
         f"fit of scene {s['scene']['name']!r}: {s['status']} ({r['stop_reason']}, "

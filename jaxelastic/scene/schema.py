@@ -68,6 +68,9 @@ __all__ = [
     "OutputSpec",
     "FitTarget",
     "FitInitial",
+    "FitObservation",
+    "FIT_KINDS",
+    "fit_parameters",
     "FitCase",
     "FitSpec",
     "validate",
@@ -918,6 +921,14 @@ else:
     NuValues = either("scalar", scalar=_NU, array=Annotated[tuple[_NU, ...], Field(min_length=1)])
 
 
+def fit_parameters(model: str) -> tuple[str, ...]:
+    """The names ``[fit].fields`` accepts for a material model: E and nu for the Lamé
+    models, the scalar parameters of a rubber/tissue model (not fibre directions)."""
+    if model in FAMILIES:
+        return tuple(k for k in FAMILY_KEYS[model] if k not in ("a01", "a02"))
+    return ("E", "nu")
+
+
 def _n_values(x) -> int:
     return len(x) if isinstance(x, tuple) else 1
 
@@ -935,14 +946,79 @@ class FitTarget(Table):
 
 
 class FitInitial(Table):
-    """The initial guess (default: ``[material].E`` and ``.nu``)."""
+    """The initial guess of the fitted parameters, by name (default: the value in
+    ``[material]``)."""
 
     E: EValues | None = Field(default=None, description="[Pa]: one value, or one per region")
     nu: NuValues | None = Field(default=None, description="one value, or one per region")
+    mu: Number | None = Field(default=None, description="[Pa] Gent, Arruda–Boyce, HGO")
+    c10: Number | None = Field(default=None, description="[Pa] Mooney–Rivlin, Yeoh")
+    c01: Number | None = Field(default=None, description="[Pa] Mooney–Rivlin")
+    c20: Number | None = Field(default=None, description="[Pa] Yeoh")
+    c30: Number | None = Field(default=None, description="[Pa] Yeoh")
+    kappa: Number | None = Field(default=None, description="[Pa] bulk modulus, rubber models")
+    mu1: Number | None = Field(default=None, description="[Pa] Ogden")
+    mu2: Number | None = Field(default=None, description="[Pa] Ogden")
+    mu3: Number | None = Field(default=None, description="[Pa] Ogden")
+    alpha1: Number | None = Field(default=None, description="Ogden")
+    alpha2: Number | None = Field(default=None, description="Ogden")
+    alpha3: Number | None = Field(default=None, description="Ogden")
+    Jm: Number | None = Field(default=None, description="Gent")
+    lambda_m: Number | None = Field(default=None, description="Arruda–Boyce")
+    k1: Number | None = Field(default=None, description="[Pa] HGO")
+    k2: Number | None = Field(default=None, description="HGO")
+    kappa_dispersion: Number | None = Field(default=None, description="HGO")
+    bulk: Number | None = Field(default=None, description="[Pa] HGO bulk modulus")
+
+
+FIT_KINDS = ("positions", "points", "reaction", "surface")
+
+
+class FitObservation(Table):
+    """A measurement of a ``[[fit.case]]``, one entry per load factor in its ``file``:
+    ``reaction``: CSV with the header ``factor,force`` (force along ``direction`` [N]);
+    ``points``: NPZ with ``points`` (n, dim) rest coordinates [m] and ``displacements``
+    (n_levels, n, dim) [m]; ``positions``: NPZ with ``nodes`` (n,) and ``positions``
+    (n_levels, n, dim) [m]; ``surface``: NPZ with ``points`` (n_levels, m, dim) measured
+    deformed positions [m]."""
+
+    kind: Literal["positions", "points", "reaction", "surface"] = Field(
+        description='"positions", "points" (DIC), "reaction" (force) or "surface" (scan)'
+    )
+    file: Str = Field(description="data file, relative to the scene (layouts above)")
+    sigma: Positive = Field(
+        description="standard deviation of one measured value, in the data's units ([m], [N])"
+    )
+    nodes: Selector | None = Field(
+        default=None, description="reaction: the supported nodes (the selectors of [[dirichlet]])"
+    )
+    direction: Vector | None = Field(
+        default=None, description="reaction: the direction of the measured force (normalised)"
+    )
+    components: Annotated[tuple[Literal["x", "y", "z"], ...], Field(min_length=1)] | None = Field(
+        default=None, description='points: the measured components, e.g. ["x", "y"] (default all)'
+    )
+
+    @model_validator(mode="after")
+    def _kind_keys(self):
+        reaction = self.kind == "reaction"
+        if reaction and (self.nodes is None or self.direction is None):
+            raise fail("{at}: kind = 'reaction' needs nodes = { ... } and direction = [..]")
+        if not reaction and (self.nodes is not None or self.direction is not None):
+            raise fail("{at}: nodes and direction belong to kind = 'reaction' only")
+        if self.direction is not None and not any(abs(a) > 0 for a in self.direction):
+            raise fail("{at}.direction must not be zero")
+        if self.components is not None:
+            if self.kind != "points":
+                raise fail("{at}.components belongs to kind = 'points' only")
+            if len(set(self.components)) != len(self.components):
+                raise fail(f"{{at}}.components repeats a component: {list(self.components)!r}")
+        return self
 
 
 class FitCase(Table):
-    """Another load case: scene overrides, a weight and (file targets) its observations."""
+    """Another load case: scene overrides, a weight, and its observations (a file of
+    positions, or ``[[fit.case.observation]]`` entries over ``load_factors``)."""
 
     set: dict[str, Any] = Field(
         default={},
@@ -953,6 +1029,14 @@ class FitCase(Table):
         default=None, description="observation file of this case (file targets)"
     )
     weight: Positive = Field(default=1.0, description="weight of this case in the loss")
+    load_factors: Annotated[tuple[Number, ...], Field(min_length=1)] = Field(
+        default=(1.0,),
+        description="the case's prescribed displacements and loads are multiplied by each "
+        "factor in turn (a load path, solved in order), e.g. [0.25, 0.5, 0.75, 1.0]",
+    )
+    observation: Annotated[list[FitObservation], BeforeValidator(_array_of_tables)] = Field(
+        default=[], description="measurements over the load factors ([[fit.case.observation]])"
+    )
 
     @field_validator("set")
     @classmethod
@@ -964,7 +1048,9 @@ class FitCase(Table):
 
 
 class FitSpec(Table):
-    """Material identification (``jaxelastic fit``): fit E and nu to observed shapes."""
+    """Material identification (``jaxelastic fit``): fit any parameter of the scene's
+    material to observed shapes (synthetic or file targets of E, nu), or to measurements
+    of load paths (``[[fit.case.observation]]``)."""
 
     target: FitTarget | None = Field(
         default=None, description="synthetic observations solved at { E, nu[, refine] }"
@@ -974,9 +1060,14 @@ class FitSpec(Table):
         description="observed positions of the scene's case: .npy (n_nodes, dim), .npz with "
         '"positions" (n_obs, dim) and optional "nodes" (n_obs,), or .csv rows "node, x, y[, z]"',
     )
-    initial: FitInitial = Field(default=FitInitial(), description="initial guess { E, nu }")
-    fields: Annotated[tuple[Literal["E", "nu"], ...], Field(min_length=1)] = Field(
-        default=("E", "nu"), description="the fitted parameters (the others stay at initial)"
+    initial: FitInitial = Field(
+        default=FitInitial(), description="initial guess by name (default: [material])"
+    )
+    fields: Annotated[tuple[Str, ...], Field(min_length=1)] = Field(
+        default=("E", "nu"),
+        description='the fitted parameters of the material, e.g. ["E", "nu"] or '
+        '["c10", "c01"] (the others stay at [material]); bounds follow each '
+        "parameter's meaning",
     )
     regions: tuple[WhereExpr, ...] = Field(
         default=(),
@@ -1005,8 +1096,15 @@ class FitSpec(Table):
         default=[], description="more load cases ([[fit.case]])"
     )
 
+    @property
+    def measured(self) -> bool:
+        """Whether the fit uses ``[[fit.case.observation]]`` measurements."""
+        return any(c.observation for c in self.case)
+
     @model_validator(mode="after")
     def _consistent(self):
+        if self.measured:
+            return self._consistent_measured()
         if (self.target is None) == (self.observed is None):
             raise fail("{at} needs exactly one of target = { E, nu } (synthetic) or observed")
         if len(set(self.fields)) != len(self.fields):
@@ -1027,6 +1125,24 @@ class FitSpec(Table):
                 raise fail(f"{key}.observed: not with a synthetic [fit].target")
             if c.observed is None and self.observed is not None:
                 raise fail(f"{key}.observed is required (the scene's targets come from files)")
+            if c.load_factors != (1.0,):
+                raise fail(f"{key}.load_factors needs [[fit.case.observation]] measurements")
+        return self
+
+    def _consistent_measured(self):
+        for k in ("target", "observed"):
+            if getattr(self, k) is not None:
+                raise fail(f"{{at}}.{k}: not with [[fit.case.observation]] measurements")
+        if self.regions:
+            raise fail("{at}.regions: not with [[fit.case.observation]] measurements")
+        for i, c in enumerate(self.case):
+            key = f"[fit.case][{i}]"
+            if not c.observation:
+                raise fail(f"{key} has no [[fit.case.observation]] (every case needs one)")
+            if c.observed is not None:
+                raise fail(f"{key}.observed: use [[fit.case.observation]] kind = 'positions'")
+        if len(set(self.fields)) != len(self.fields):
+            raise fail(f"{{at}}.fields has duplicates: {list(self.fields)!r}")
         return self
 
 
@@ -1079,9 +1195,32 @@ class SceneSpec(Table):
             init = fit.get("initial", {})
             if isinstance(init, Mapping):
                 ok = lambda v: isinstance(v, (int, float, list, tuple)) and not isinstance(v, bool)
-                init = {k: mat[k] for k in ("E", "nu") if ok(mat.get(k))} | dict(init)
+                keys = FitInitial.model_fields
+                init = {k: mat[k] for k in keys if ok(mat.get(k))} | dict(init)
                 t["fit"] = {**fit, "initial": init}
         return t
+
+    def _fit_fields_problem(self) -> str | None:
+        """An unknown ``[fit].fields`` name or a missing initial value, or None."""
+        fit, model = self.fit, self.material.model
+        assert fit is not None
+        valid = fit_parameters(model)
+        if model in FAMILIES and not fit.measured:
+            return (
+                f"[fit] with a target of positions fits E and nu: it needs a Lamé model, not "
+                f"{model!r}; fit {', '.join(valid)} with [[fit.case.observation]] measurements"
+            )
+        for k in fit.fields:
+            if k not in valid:
+                return (
+                    f"[fit].fields: {k!r} is not a parameter of {model!r} (fittable: "
+                    f"{', '.join(valid)})"
+                )
+        needed = ("E", "nu") if model not in FAMILIES else fit.fields
+        for k in needed:
+            if getattr(fit.initial, k) is None:
+                return f"[fit].initial.{k} is required ([material] has no {k})"
+        return None
 
     @property
     def static(self) -> bool:
@@ -1106,15 +1245,10 @@ class SceneSpec(Table):
     def _cross_problem(self) -> str | None:
         """The first inconsistency between tables, or None."""
         dynamic = not self.static
-        if self.fit is not None and self.material.model in FAMILIES:
-            return (
-                f"[fit] fits E and nu: it needs a Lamé model, not {self.material.model!r} "
-                "(fit rubber/tissue constants with jaxelastic.fitting.fit)"
-            )
         if self.fit is not None:
-            for k in ("E", "nu"):
-                if getattr(self.fit.initial, k) is None:
-                    return f"[fit].initial.{k} is required ([material] has no {k})"
+            problem = self._fit_fields_problem()
+            if problem is not None:
+                return problem
             if self.fit.target is not None and self.fit.target.refine > 1:
                 if self.mesh.generator is None:
                     return "[fit].target.refine needs a [mesh].generator (not a mesh file)"
