@@ -7,9 +7,9 @@ and the Dirichlet data ``path(s)`` (default: the prescribed displacement scaled 
 A failed solve halves the increment (from the last converged state); a success grows it
 again (×1.5, at most the initial increment). Every increment is one
 :func:`~jaxelastic.solvers.equilibrium.solve`; all share one compilation (only array values
-change between them). With a contact term (``pot.contact``) the obstacles' prescribed motion is evaluated at ``s``, friction is
-lagged at the last converged state, and nodes an obstacle swept over are pushed out of it
-before the increment's Newton solve.
+change between them). With a contact term (``pot.contact``) the obstacles' prescribed
+motion is evaluated at ``s``, friction is lagged at the last converged state, and nodes an
+obstacle swept over are pushed out of it before the increment's Newton solve.
 """
 
 from __future__ import annotations
