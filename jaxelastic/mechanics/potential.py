@@ -418,9 +418,11 @@ def with_loop_terms(pot: Potential, terms: dict[str, Any]) -> Potential:
 
 
 def has_coupling(pot: Potential) -> bool:
-    """Whether the Hessian couples nodes of different elements (self-contact pairs), so
-    the Newton operator is more than the assembled element matrix."""
-    return pot.contact is not None and getattr(pot.contact, "self_contact", None) is not None
+    """Whether the Hessian couples nodes of different elements (self-contact pairs, a
+    cavity's volume control), so the Newton operator is more than the assembled element
+    matrix."""
+    sc = pot.contact is not None and getattr(pot.contact, "self_contact", None) is not None
+    return sc or (pot.pressure is not None and pot.pressure.kappa is not None)
 
 
 def coupling_data(pot: Potential, x: jax.Array, exact: bool = False):
@@ -432,7 +434,17 @@ def coupling_data(pot: Potential, x: jax.Array, exact: bool = False):
 
 def coupling(pot: Potential, x: jax.Array, data=None, exact: bool = False):
     """The Hessian's coupling of nodes of different elements as ``v ↦ H_c v``
-    (``(n_nodes, dim) -> (n_nodes, dim)``), or None where there is none."""
-    if pot.contact is None:
+    (``(n_nodes, dim) -> (n_nodes, dim)``): self-contact pairs and a cavity's volume
+    control (:meth:`~jaxelastic.mechanics.pressure.Pressure.coupling`), or None where there
+    is none."""
+    ops = []
+    if pot.contact is not None:
+        ops.append(pot.contact.coupling(x, exact=exact, pair_hessians=data))
+    if pot.pressure is not None:
+        ops.append(pot.pressure.coupling(x))
+    ops = [op for op in ops if op is not None]
+    if not ops:
         return None
-    return pot.contact.coupling(x, exact=exact, pair_hessians=data)
+    if len(ops) == 1:
+        return ops[0]
+    return lambda v: ops[0](v) + ops[1](v)

@@ -33,6 +33,20 @@ asks for projected Hessians).
 
 Build one with :func:`pressure_term` (or :func:`jaxelastic.loads.pressure_load` with the
 facet selectors of the tractions).
+
+**Volume control** (the cavity volume prescribed, the pressure an unknown): with ``target``
+``T`` and ``kappa`` ``κ`` set, the term is the augmented Lagrangian
+
+``Π_p(x) = −Σ_s λ_s V_s(x) + Σ_s κ_s/2 (V_s(x) − T_s)²``
+
+(Hestenes 1969, Powell 1969; Bertsekas, *Constrained Optimization and Lagrange Multiplier
+Methods*, 1982, ch. 2) whose multiplier estimate ``λ`` is the ``pressure`` field: its
+minimiser is an equilibrium under the pressure ``p = λ − κ(V − T)``, and the update
+``λ ← p`` (:func:`jaxelastic.solvers.solve_volume_controlled`) drives ``V → T``. Its
+Hessian adds ``κ ∇V ∇Vᵀ``, a rank-one coupling of all the surface's nodes, which Newton
+applies as an operator (:meth:`Pressure.coupling`) next to the element Hessians (where
+``−p ∇²V`` goes): it makes the inner problem convex past a pressure limit point, where the
+pressure-controlled tangent has a negative eigenvalue.
 """
 
 from __future__ import annotations
@@ -89,6 +103,9 @@ class Pressure:
         origin: ``(n_s, d)`` the closing point ``c`` of each surface [length].
         pressure: ``(n_s,)`` the pressure on each surface [Pa]; positive pushes into the
             body (inflates a cavity).
+        target: ``(n_s,)`` prescribed volumes ``T`` [length^d] (volume control), or None.
+        kappa: ``(n_s,)`` augmented-Lagrangian penalties ``κ`` [Pa/length^d] (0: that
+            surface is pressure controlled), or None (no volume control).
         element: static, the mesh's element name.
     """
 
@@ -99,6 +116,8 @@ class Pressure:
     touched: jax.Array
     origin: jax.Array
     pressure: jax.Array
+    target: jax.Array | None = None
+    kappa: jax.Array | None = None
     element: str = dataclasses.field(metadata=dict(static=True), default="tri3")
 
     def replace(self, **kw) -> Pressure:
@@ -124,8 +143,45 @@ class Pressure:
         )
 
     def energy(self, x: jax.Array) -> jax.Array:
-        """``Π_p(x) = −Σ_s p_s V_s(x)`` [energy]."""
-        return -jnp.sum(self.pressure.astype(x.dtype) * self.volumes(x))
+        """``Π_p(x) = −Σ_s p_s V_s(x)`` (+ ``Σ κ_s/2 (V_s − T_s)²`` under volume control)
+        [energy]."""
+        V = self.volumes(x)
+        e = -jnp.sum(self.pressure.astype(x.dtype) * V)
+        if self.kappa is not None:
+            dv = V - self._target(x.dtype)
+            e = e + 0.5 * jnp.sum(self.kappa.astype(x.dtype) * dv * dv)
+        return e
+
+    def _target(self, dtype) -> jax.Array:
+        if self.target is None:
+            raise TypeError("Pressure: kappa is set but target is None (volume control needs both)")
+        return self.target.astype(dtype)
+
+    def effective_pressures(self, x: jax.Array) -> jax.Array:
+        """``(n_s,)`` the pressures the term exerts at ``x`` [Pa]: ``p`` (or, under volume
+        control, ``λ − κ(V − T)``)."""
+        p = self.pressure.astype(x.dtype)
+        if self.kappa is None:
+            return p
+        return p - self.kappa.astype(x.dtype) * (self.volumes(x) - self._target(x.dtype))
+
+    def volume_gradients(self, x: jax.Array) -> jax.Array:
+        """``(n_s, n_nodes, d)`` the gradients ``∂V_s/∂x``."""
+        _, vjp = jax.vjp(self.volumes, x)
+        return jax.vmap(lambda e: vjp(e)[0])(jnp.eye(self.n_surfaces, dtype=x.dtype))
+
+    def coupling(self, x: jax.Array):
+        """Volume control's rank-one Hessian ``Σ_s κ_s ∇V_s ∇V_sᵀ`` as ``v ↦ H_c v``
+        (``(n_nodes, d) -> (n_nodes, d)``), or None without volume control."""
+        if self.kappa is None:
+            return None
+        G = self.volume_gradients(x)  # (n_s, n, d)
+        k = self.kappa.astype(x.dtype)
+
+        def apply(v):
+            return jnp.einsum("s,snd->nd", k * jnp.einsum("snd,nd->s", G, v), G)
+
+        return apply
 
     def gradient(self, x: jax.Array) -> jax.Array:
         """``∂Π_p/∂x`` ``(n_nodes, d)``: minus the follower forces ``−p ∫ n N_a da``."""
@@ -136,7 +192,8 @@ class Pressure:
         return jax.jvp(self.gradient, (x,), (v,))[1]
 
     def facet_hessians(self, x: jax.Array) -> jax.Array:
-        """``(m, k·d, k·d)`` the Hessian of ``Π_p`` per facet (node-major)."""
+        """``(m, k·d, k·d)`` the Hessian of ``Π_p`` per facet (node-major), without volume
+        control's rank-one part (:meth:`coupling`)."""
         c = self.origin.astype(x.dtype)[self.surface]
         xf = x[self.facets]  # (m, k, d)
         m, k, d = xf.shape
@@ -147,7 +204,7 @@ class Pressure:
             )
 
         H = jax.vmap(one)(xf, c)  # (m, k·d, k·d)
-        p = self.pressure.astype(x.dtype)[self.surface]
+        p = self.effective_pressures(x)[self.surface]
         return -p[:, None, None] * H
 
     def add_hessian_blocks(self, Ke: jax.Array, x: jax.Array, project: bool = False) -> jax.Array:
@@ -170,7 +227,17 @@ class Pressure:
 
 jax.tree_util.register_dataclass(
     Pressure,
-    data_fields=["facets", "surface", "cells", "slots", "touched", "origin", "pressure"],
+    data_fields=[
+        "facets",
+        "surface",
+        "cells",
+        "slots",
+        "touched",
+        "origin",
+        "pressure",
+        "target",
+        "kappa",
+    ],
     meta_fields=["element"],
 )
 

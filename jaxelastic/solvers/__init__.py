@@ -3,7 +3,8 @@
 ``results`` (Status, Solution, SolveError) → ``linear`` (settings, state, the ``auto``
 table, the one CG) → ``newton`` (settings, state, the one loop) → ``adjoint``
 (implicit-function-theorem derivatives) → ``equilibrium`` (:func:`solve`, the entry point)
-→ ``continuation`` (load stepping on solve).
+→ ``continuation`` (load stepping on solve) and ``volume_control`` (prescribed cavity
+volumes, the pressures unknown).
 """
 
 from ..deprecation import moved_attributes
@@ -14,6 +15,8 @@ from .adjoint import check_finite_gradients as check_finite_gradients
 from .adjoint import value_and_grad as value_and_grad
 from .continuation import scaled_dirichlet as scaled_dirichlet
 from .continuation import solve_incremental as solve_incremental
+from .volume_control import cavity_compliance as cavity_compliance
+from .volume_control import solve_volume_controlled as solve_volume_controlled
 from .equilibrium import PreparedSolver as PreparedSolver
 from .equilibrium import bind_solver as bind_solver
 from .equilibrium import is_traced as is_traced
@@ -46,6 +49,8 @@ __all__ = [
     "value_and_grad",
     "scaled_dirichlet",
     "solve_incremental",
+    "solve_volume_controlled",
+    "cavity_compliance",
     "bind_solver",
     "PreparedSolver",
     "is_traced",
