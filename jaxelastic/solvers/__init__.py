@@ -15,8 +15,6 @@ from .adjoint import check_finite_gradients as check_finite_gradients
 from .adjoint import value_and_grad as value_and_grad
 from .continuation import scaled_dirichlet as scaled_dirichlet
 from .continuation import solve_incremental as solve_incremental
-from .volume_control import cavity_compliance as cavity_compliance
-from .volume_control import solve_volume_controlled as solve_volume_controlled
 from .equilibrium import PreparedSolver as PreparedSolver
 from .equilibrium import bind_solver as bind_solver
 from .equilibrium import is_traced as is_traced
@@ -40,6 +38,8 @@ from .newton import solved_potential as solved_potential
 from .results import Solution as Solution
 from .results import SolveError as SolveError
 from .results import Status as Status
+from .volume_control import cavity_compliance as cavity_compliance
+from .volume_control import solve_volume_controlled as solve_volume_controlled
 
 __all__ = [
     "X_STAR",
