@@ -153,13 +153,13 @@ def solve_volume_controlled(
         target = jnp.asarray(V0 + s * (T - V0), dt)
         done = False
         for j in range(max_updates):
-            q = pot.replace(pressure=free.replace(pressure=lam, target=target, kappa=k))
-            res = solve(q, bc, x0=x, solver=prepared, throw=False)
+            al = free.replace(pressure=lam, target=target, kappa=k)
+            res = solve(pot.replace(pressure=al), bc, x0=x, solver=prepared, throw=False)
             if not bool(res.ok):
                 break
             x = res.x
-            V = q.pressure.volumes(x)
-            lam = q.pressure.effective_pressures(x)  # λ ← λ − κ(V − T)
+            V = al.volumes(x)
+            lam = al.effective_pressures(x)  # λ ← λ − κ(V − T)
             solves.append(_record(s, j, res, V, lam))
             if bool(jnp.all(jnp.abs(V - target) <= rtol * target)):
                 done = True
