@@ -329,12 +329,12 @@ def test_volume_control_refuses_bad_targets():
         solve_volume_controlled(wrong, bc, 1.0)
 
 
-@pytest.mark.extended
+@pytest.mark.slow
 def test_volume_control_passes_the_pressure_limit_point_of_a_thick_sphere():
     """Thick sphere (B/A = 2), P2 + F-bar octant, volume control to λ_a = 2.3 in 3 steps:
     the pressure rises past the closed form's maximum 0.816 μ (λ_a = 1.83) and falls again,
     each within 1 % of the closed form at the prescribed volume (measured: ≤ 0.75 % at
-    n = 2)."""
+    n = 2; 170 s on a loaded 2-core machine, hence the slow tier)."""
     from jaxelastic.solvers import solve_volume_controlled
 
     m = spherical_shell(1.0, 2.0, 2, 1, order=2, formulation="fbar")

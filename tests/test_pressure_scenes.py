@@ -56,6 +56,8 @@ def test_bad_pressure_scenes_refused_at_build(overrides, message):
     [
         ({"pressure.0.pressure": float("nan")}, "[pressure][0].pressure"),
         ({"pressure.0.cavity": "lung"}, "names no [[cavity]]"),
+        ({"cavity.0.volume": -1e-3}, "[cavity][0].volume"),
+        ({"cavity.0.volume": 1e-3}, "a scene with volume control has no [[pressure]]"),
     ],
 )
 def test_bad_pressure_scenes_refused_at_load(overrides, message):
@@ -83,3 +85,22 @@ def test_balloon_runs_and_reports_its_pressure_volume_curve(tmp_path):
     lb = (1 + (la**3 - 1) / 8) ** (1 / 3)
     p = 0.5 * mu * ((4 / lb + lb**-4) - (4 / la + la**-4))
     assert abs(p - 5.0e4) / 5.0e4 < 0.01
+
+
+@pytest.mark.extended
+def test_balloon_under_volume_control(tmp_path):
+    """[[cavity]] volume = 1.3³ V₀ (no [[pressure]]): the cavity reaches it in the load steps
+    and the pressure found agrees with the closed form at λ_a = 1.3 within 1 %."""
+    from jaxelastic.scene import run_scene
+
+    V0 = math.pi / 6 * 0.1**3
+    over = {"pressure": [], "cavity.0.volume": V0 * 1.3**3, "integrator.load_steps": 2}
+    summary = run_scene(load_scene("balloon", overrides=over), tmp_path, progress=False)
+    cav = summary["cavities"]["inside"]
+    assert abs(cav["volume"][-1] - V0 * 1.3**3) < 1e-6 * V0
+    mu = 3.0e5 / (2 * 1.499)
+    la = 1.3 * (V0 / cav["rest_volume"]) ** (1 / 3)
+    lb = (1 + (la**3 - 1) / 8) ** (1 / 3)
+    p = 0.5 * mu * ((4 / lb + lb**-4) - (4 / la + la**-4))
+    assert abs(cav["pressure"][-1] - p) / p < 0.01
+    assert all(r["multiplier_updates"] >= 1 for r in summary["static"]["load_steps"])

@@ -23,9 +23,16 @@ from ..loads import Dirichlet
 from ..mechanics.potential import Potential
 from ..mechanics.pressure import Pressure, check_closed, pressure_term
 from ..mesh import Mesh
+from ..solvers import solve_volume_controlled
 from .load import Scene
 
-__all__ = ["Cavities", "build_pressure", "cavity_report", "pressure_volume_figure"]
+__all__ = [
+    "Cavities",
+    "build_pressure",
+    "cavity_report",
+    "pressure_volume_figure",
+    "volume_controlled_solve",
+]
 
 
 class Cavities(NamedTuple):
@@ -37,11 +44,15 @@ class Cavities(NamedTuple):
             surfaces (zero pressures: only its ``volumes(x)`` is used).
         pressure: ``(n_cavities,)`` the full pressure on each cavity [Pa] (the sum of the
             ``[[pressure]]`` entries that name it; 0 where none does).
+        volumes: ``(n_cavities,)`` the prescribed volumes of a volume-controlled scene
+            (every cavity has one; the potential's pressure term is then the cavities'
+            surfaces), or None.
     """
 
     names: tuple[str, ...]
     term: Pressure
     pressure: np.ndarray
+    volumes: np.ndarray | None = None
 
 
 def _corner_set(facets: np.ndarray, dim: int) -> set:
@@ -131,22 +142,78 @@ def build_pressure(
         np.zeros(len(cav)),
         np.stack([np.asarray(t.origin[0]) for _, t in cav]),
     )
+    targets = [c.volume for c in spec.cavity]
+    if any(v is not None for v in targets):  # volume control: the cavities are loaded
+        if any(v is None for v in targets):
+            raise scene.error(
+                "[cavity]: volume control needs a volume for every [[cavity]] (or none)"
+            )
+        for i, (_, t) in enumerate(cav):
+            try:
+                check_closed(t, X, mask, vals, what=f"[cavity][{i}]")
+            except ValueError as e:
+                raise scene.error(str(e)) from None
+        pot = pot.replace(pressure=term)
+        return pot, Cavities(tuple(names), term, cav_p, np.asarray(targets, np.float64))
     return pot, Cavities(tuple(names), term, cav_p)
+
+
+def volume_controlled_solve(built, steps: int, on_increment: Callable):
+    """The static solve of a volume-controlled scene
+    (:func:`~jaxelastic.solvers.solve_volume_controlled`, ``steps`` volume increments):
+    ``(x, per-increment stats, solution)`` like :func:`~jaxelastic.scene.run.static_solve`;
+    ``on_increment(s, solution)`` gets the cavity pressures in
+    ``solution.stats["cavity_pressure"]``.
+
+    Raises:
+        SolveError: an increment did not converge.
+    """
+    cav = built.cavities
+    pot = built.potential.replace(mass=None)
+
+    def cb(s, res, V, p):
+        on_increment(s, res._replace(stats=dict(res.stats, cavity_pressure=p)))
+
+    sol = solve_volume_controlled(
+        pot, built.bc, cav.volumes, steps=steps, solver=built.solver.newton, callback=cb
+    )
+    stats = []
+    for r in sol.stats["path"]:
+        mine = [h for h in sol.stats["solves"] if h["load_factor"] == r["load_factor"]]
+        stats.append(
+            dict(
+                status=mine[-1]["status"],
+                newton_steps=sum(h["steps"] for h in mine),
+                linear_iterations=sum(h["linear_iterations"] for h in mine),
+                residual=mine[-1]["residual"],
+                wall_time=sum(h["wall_time"] for h in mine),
+                load_factor=r["load_factor"],
+                accepted=True,
+                multiplier_updates=r["updates"],
+                cavity_pressure=r["pressure"],
+            )
+        )
+    return sol.x, stats, sol
 
 
 def cavity_report(cav: Cavities, steps: list) -> dict:
     """``{name: {load_factor, pressure, volume, rest_volume}}`` over the load steps.
 
     Args:
-        steps: ``(load factor s, positions (n_nodes, dim))`` of the rest state and of every
-            converged increment (the pressure at ``s`` is ``s`` times the full one).
+        steps: ``(load factor s, positions (n_nodes, dim), pressures or None)`` of the rest
+            state and of every converged increment (None: the pressure at ``s`` is ``s``
+            times the full one; volume control passes the pressures it found).
     """
-    vols = np.stack([np.asarray(cav.term.volumes(jnp.asarray(x)), np.float64) for _, x in steps])
-    s = [float(si) for si, _ in steps]
+    vols = np.stack([np.asarray(cav.term.volumes(jnp.asarray(x)), np.float64) for _, x, _ in steps])
+    s = [float(si) for si, _, _ in steps]
+    ps = [
+        [si * float(p) for p in cav.pressure] if q is None else [float(v) for v in q]
+        for si, _, q in steps
+    ]
     return {
         n: dict(
             load_factor=s,
-            pressure=[si * float(cav.pressure[k]) for si in s],
+            pressure=[p[k] for p in ps],
             volume=vols[:, k].tolist(),
             rest_volume=float(vols[0, k]),
         )

@@ -24,7 +24,7 @@ from ..loads import Dirichlet
 from ..parallel.distributed import host_array
 from ..solvers import Solution, SolveError, solve_incremental
 from . import interrupt, memory
-from .cavity import cavity_report, pressure_volume_figure
+from .cavity import cavity_report, pressure_volume_figure, volume_controlled_solve
 from .contact import contact_report, min_gap
 from .interrupt import Interrupted
 from .load import load_scene
@@ -122,6 +122,8 @@ def static_solve(
         path = sh.bc_fn if fixed is None else (lambda s: fixed)
         x0, pot = sh.x0, sh.potential.replace(mass=None) if pot is None else pot
     on_increment = callback or (lambda s, sol: interrupt.check())
+    if bc is None and built.cavities is not None and built.cavities.volumes is not None:
+        return volume_controlled_solve(built, n, on_increment)  # [[cavity]] volume = ...
     sol = solve_incremental(
         pot,
         path(1.0),
@@ -209,7 +211,8 @@ def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
         summary["contact"] = contact_report(built.potential, x, 1.0, min(gaps, default=None))
     summary["probes"] = probe_report(built, x)
     if built.cavities is not None:  # [[cavity]]: volumes per load step, P–V plot
-        steps = [(0.0, built.x0)] + [(si, so.x) for si, so in done]
+        steps = [(0.0, built.x0, None)]
+        steps += [(si, so.x, so.stats.get("cavity_pressure")) for si, so in done]
         summary["cavities"] = cavity_report(built.cavities, steps)
     t0 = time.perf_counter()
     # the stresses once for the VTU and the picture (0.07-0.2 s per evaluation at 146k tets)

@@ -715,6 +715,12 @@ class CavitySpec(Table):
         description="[m] the point the opening is closed to (default: the centroid of the "
         "surface's rim)",
     )
+    volume: Positive | None = Field(
+        default=None,
+        description="[m^3] (2D: m^2) volume control: the cavity is brought to this volume in "
+        "the load steps, its wall loaded by the pressure that takes (an unknown; no "
+        "[[pressure]] in the scene then)",
+    )
 
 
 class PlaneObstacle(Table):
@@ -1208,7 +1214,13 @@ class SceneSpec(Table):
                     f"[pressure][{i}].cavity {p.cavity!r} names no [[cavity]] (cavities: "
                     f"{', '.join(repr(n) for n in names) or 'none'})"
                 )
-        if self.pressure and not self.static:
+        controlled = [c.name for c in self.cavity if c.volume is not None]
+        if controlled and self.pressure:
+            return (
+                f"[cavity] {controlled[0]!r} has a volume (volume control: its pressure is the "
+                "unknown); a scene with volume control has no [[pressure]] entries"
+            )
+        if (self.pressure or controlled) and not self.static:
             return "[[pressure]] is supported in static scenes ([integrator].type = 'static')"
         return None
 

@@ -72,6 +72,9 @@ def _record(s, j, res: Solution, V, p) -> dict:
         update=j,
         status=Status(int(res.status)).name,
         steps=int(res.stats["steps"]),
+        linear_iterations=int(res.stats["linear_iterations"]),
+        residual=float(res.stats["residual"]),
+        wall_time=float(res.stats.get("wall_time", 0.0)),
         volume=[float(v) for v in V],
         pressure=[float(q) for q in p],
     )
@@ -117,7 +120,9 @@ def solve_volume_controlled(
         The :class:`~jaxelastic.solvers.results.Solution` at the last converged increment
         with extra stats ``pressure`` and ``volume`` (``(n_s,)`` lists), ``path`` (one dict
         per converged increment: ``load_factor``, ``volume``, ``pressure``, ``updates``)
-        and ``solves`` (one dict per inner solve), ``wall_time``.
+        and ``solves`` (one dict per inner solve: ``load_factor``, ``update``, ``status``,
+        ``steps``, ``linear_iterations``, ``residual``, ``wall_time``, ``volume``,
+        ``pressure``), ``wall_time``.
 
     Raises:
         ValueError: no pressure term, a non-finite or non-positive target volume, or a
