@@ -298,7 +298,7 @@ def traction_load(mesh: Mesh, facets, traction) -> np.ndarray:
     return _mesh_dtype(mesh, f)
 
 
-def pressure_load(mesh: Mesh, facets, pressure, origin=None) -> Pressure:
+def pressure_load(mesh: Mesh, facets, pressure, origin=None, *, follower: bool = False) -> Pressure:
     """A follower pressure on boundary facets as a potential term ``−Σ_s p_s V_s(x)``.
 
     Args:
@@ -314,8 +314,10 @@ def pressure_load(mesh: Mesh, facets, pressure, origin=None) -> Pressure:
         ``Potential(..., pressure=...)``; ``term.volumes(x)`` gives the cavity volumes. It is
         exact (conservative) for closed cavities and for rims that are fixed or slide on a
         symmetry plane; :func:`jaxelastic.solve` checks that against its Dirichlet data.
+        ``follower=True`` declares an open surface whose rim moves: the exact follower
+        residual with a symmetric quasi-Newton tangent (no potential, no derivatives).
     """
-    return pressure_term(mesh, facets, pressure, origin)
+    return pressure_term(mesh, facets, pressure, origin, follower=follower)
 
 
 def point_load(mesh: Mesh, nodes, force) -> np.ndarray:

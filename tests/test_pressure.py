@@ -350,3 +350,59 @@ def test_volume_control_passes_the_pressure_limit_point_of_a_thick_sphere():
         las.append(la)
         assert abs(r["pressure"][0] - _sphere_pressure(la)) / _sphere_pressure(la) < 0.01
     assert las[0] < 1.83 < las[-1] and ps[-1] < max(ps)  # through the maximum
+
+
+# -- follower load on an open surface with a moving rim ------------------------------------
+
+
+def _cantilever_follower(p):
+    m = je.box(6, 1, 1, size=(6.0, 1.0, 1.0))
+    bottom = L.facets_where(m, lambda X: X[:, 2] < 1e-9)
+    term = L.pressure_load(m, bottom, p, follower=True)
+    bc = L.fix(m, L.nodes_on_plane(m, 0, 0.0))
+    pot = je.Potential(m, je.Lame(100.0, 150.0), psi=je.neo_hookean, pressure=term)
+    return m, term, bc, pot
+
+
+def test_follower_residual_is_the_exact_follower_force_everywhere():
+    """On an open surface (a cantilever's bottom face) the follower term's force is the
+    facet-by-facet −p n da at every node, rim included (no lid), and its tangent blocks are
+    the symmetric part of the true one."""
+    m, term, bc, pot = _cantilever_follower(0.7)
+    x = _perturbed(m, 0.05)
+    f = -np.asarray(term.gradient(x))
+    ref = _follower_force(m, term.facets, 0.7, x)
+    np.testing.assert_allclose(f, ref, atol=1e-13 * np.abs(ref).max())
+    v = _perturbed(m, 1.0, seed=5) - jnp.asarray(np.asarray(m.points) * 1.1)
+
+    @jax.jit
+    def parts(term, x, v):
+        J = jax.jacfwd(term.gradient)(x).reshape(x.size, x.size)
+        return J, (0.5 * (J + J.T) @ v.reshape(-1)).reshape(x.shape), term.hvp(x, v)
+
+    J, sym, hv = parts(term, x, v)
+    np.testing.assert_allclose(np.asarray(hv), np.asarray(sym), atol=1e-12)
+    assert np.abs(np.asarray(J - J.T)).max() > 1e-3  # not conservative: J is not symmetric
+
+
+@pytest.mark.extended
+def test_follower_load_newton_converges_to_the_follower_equilibrium():
+    """The quasi-Newton (symmetric part of the tangent, line search on the residual)
+    reaches the equilibrium of elasticity with the exact follower force (checked with the
+    independent facet-by-facet force); derivatives through it are refused."""
+    m, term, bc, pot = _cantilever_follower(2.0)
+    res = je.solve(pot, bc, solver=je.Newton(rtol=1e-10, max_steps=100))
+    x = res.x
+    g_el = np.asarray(jax.grad(lambda y: je.energy(pot.psi, y, m, pot.params))(x))
+    r = g_el - _follower_force(m, term.facets, 2.0, x)
+    free = ~np.asarray(bc.mask)
+    assert np.abs(r[free]).max() < 1e-8 * np.abs(g_el[free]).max()
+    assert float(np.asarray(x)[:, 2].max()) > 1.3  # bent up by the pressure on its bottom
+    assert int(res.stats["steps"]) < 60
+
+    def tip(p):
+        q = pot.replace(pressure=term.replace(pressure=jnp.reshape(p, (1,))))
+        return je.solve(q, bc).x[-1, 2]
+
+    with pytest.raises(NotImplementedError, match="follower"):
+        jax.grad(tip)(jnp.asarray(2.0))

@@ -34,6 +34,16 @@ asks for projected Hessians).
 Build one with :func:`pressure_term` (or :func:`jaxelastic.loads.pressure_load` with the
 facet selectors of the tractions).
 
+**Open surfaces with a moving rim** (``follower=True``): the load has no potential. The
+term's gradient is then the exact follower residual ``p ∫ n N_a da`` facet by facet
+(:func:`facet_forces`), its Hessian blocks the *symmetric part* of the true facet tangent
+(a quasi-Newton tangent: every symmetric linear solver still applies; the skew part
+``(J − Jᵀ)/2`` is left out, so Newton converges linearly), and its energy ``−p V`` of the
+cone-closed surface serves only to reject inverted trial steps: the Newton line search
+accepts a step on the decrease of the residual (:func:`is_conservative`). Derivatives
+through such a solve (an adjoint with the transpose of the true Jacobian) are not
+implemented and refused.
+
 **Volume control** (the cavity volume prescribed, the pressure an unknown): with ``target``
 ``T`` and ``kappa`` ``κ`` set, the term is the augmented Lagrangian
 
@@ -63,6 +73,8 @@ from .psd import project_psd
 
 __all__ = [
     "Pressure",
+    "facet_forces",
+    "is_conservative",
     "pressure_term",
     "rim_edges",
     "check_closed",
@@ -90,6 +102,24 @@ def facet_volume(element: str, xf: jax.Array, c: jax.Array) -> jax.Array:
     return -jnp.sum(jnp.asarray(w, xf.dtype) * jnp.sum(xq * nvec, axis=-1)) / d
 
 
+def facet_forces(element: str, xf: jax.Array, p: jax.Array) -> jax.Array:
+    """The follower force ``−p ∫_f n N_a da`` on one facet's nodes, ``(k, d)`` [force]
+    (``n``: the body's outward normal of the deformed facet; exact for the facet rule).
+
+    Args:
+        element: the mesh's element name; xf: ``(k, d)`` node positions; p: the pressure.
+    """
+    N, dN, w = facet_rule(get_element(element))
+    d = xf.shape[1]
+    T = jnp.einsum("ka,rkb->rab", xf, jnp.asarray(dN, xf.dtype))  # (r, d, d-1)
+    if d == 2:
+        nvec = jnp.stack([T[:, 1, 0], -T[:, 0, 0]], axis=-1)
+    else:
+        nvec = jnp.cross(T[..., 0], T[..., 1])
+    wN = jnp.asarray(w, xf.dtype)[:, None] * jnp.asarray(N, xf.dtype)  # (r, k)
+    return -p * jnp.einsum("rk,rd->kd", wN, nvec)
+
+
 @dataclasses.dataclass(frozen=True)
 class Pressure:
     """Pressures on the boundary surfaces of cavities (see the module docstring).
@@ -107,6 +137,8 @@ class Pressure:
         kappa: ``(n_s,)`` augmented-Lagrangian penalties ``κ`` [Pa/length^d] (0: that
             surface is pressure controlled), or None (no volume control).
         element: static, the mesh's element name.
+        follower: static; True for an open surface whose rim moves (not conservative:
+            the exact follower residual, a symmetric quasi-Newton tangent).
     """
 
     facets: jax.Array
@@ -119,6 +151,7 @@ class Pressure:
     target: jax.Array | None = None
     kappa: jax.Array | None = None
     element: str = dataclasses.field(metadata=dict(static=True), default="tri3")
+    follower: bool = dataclasses.field(metadata=dict(static=True), default=False)
 
     def replace(self, **kw) -> Pressure:
         return dataclasses.replace(self, **kw)
@@ -184,12 +217,22 @@ class Pressure:
         return apply
 
     def gradient(self, x: jax.Array) -> jax.Array:
-        """``∂Π_p/∂x`` ``(n_nodes, d)``: minus the follower forces ``−p ∫ n N_a da``."""
-        return jax.grad(self.energy)(x)
+        """``∂Π_p/∂x`` ``(n_nodes, d)``: minus the follower forces ``−p ∫ n N_a da`` (for a
+        ``follower`` term: minus the exact follower forces, which are no gradient)."""
+        if not self.follower:
+            return jax.grad(self.energy)(x)
+        p = self.effective_pressures(x)[self.surface]
+        f = jax.vmap(lambda xf, q: facet_forces(self.element, xf, q))(x[self.facets], p)
+        return -jnp.zeros_like(x).at[self.facets].add(f)
 
     def hvp(self, x: jax.Array, v: jax.Array) -> jax.Array:
-        """``(∂²Π_p/∂x²)·v`` ``(n_nodes, d)`` (the pressure stiffness)."""
-        return jax.jvp(self.gradient, (x,), (v,))[1]
+        """``(∂²Π_p/∂x²)·v`` ``(n_nodes, d)`` (the pressure stiffness; for a ``follower``
+        term the symmetric part of the tangent, ``(J + Jᵀ)v/2``)."""
+        if not self.follower:
+            return jax.jvp(self.gradient, (x,), (v,))[1]
+        Jv = jax.jvp(self.gradient, (x,), (v,))[1]
+        JTv = jax.vjp(self.gradient, x)[1](v)[0]
+        return 0.5 * (Jv + JTv)
 
     def facet_hessians(self, x: jax.Array) -> jax.Array:
         """``(m, k·d, k·d)`` the Hessian of ``Π_p`` per facet (node-major), without volume
@@ -203,8 +246,17 @@ class Pressure:
                 xf.reshape(-1)
             )
 
-        H = jax.vmap(one)(xf, c)  # (m, k·d, k·d)
         p = self.effective_pressures(x)[self.surface]
+        if self.follower:  # the symmetric part of −∂f/∂x per facet
+
+            def tangent(xf, q):
+                J = jax.jacfwd(lambda y: facet_forces(self.element, y.reshape(k, d), q))(
+                    xf.reshape(-1)
+                ).reshape(k * d, k * d)
+                return -0.5 * (J + J.T)
+
+            return jax.vmap(tangent)(xf, p)
+        H = jax.vmap(one)(xf, c)  # (m, k·d, k·d)
         return -p[:, None, None] * H
 
     def add_hessian_blocks(self, Ke: jax.Array, x: jax.Array, project: bool = False) -> jax.Array:
@@ -238,11 +290,16 @@ jax.tree_util.register_dataclass(
         "target",
         "kappa",
     ],
-    meta_fields=["element"],
+    meta_fields=["element", "follower"],
 )
 
 
 # -- construction (host) ---------------------------------------------------------------------
+
+
+def is_conservative(term: Pressure | None) -> bool:
+    """Whether a pressure term (or None) has a potential (static): not a ``follower``."""
+    return term is None or not term.follower
 
 
 def _corner_keys(corners: np.ndarray, n: int) -> np.ndarray:
@@ -314,7 +371,9 @@ def _default_origin(X: np.ndarray, facets: np.ndarray, dim: int) -> np.ndarray:
     return X[nodes].mean(axis=0)
 
 
-def pressure_term(mesh: Mesh, facets, pressure, origin=None, *, what: str = "pressure") -> Pressure:
+def pressure_term(
+    mesh: Mesh, facets, pressure, origin=None, *, what: str = "pressure", follower: bool = False
+) -> Pressure:
     """A :class:`Pressure` term from facet sets of a mesh (host; once per scene).
 
     Args:
@@ -328,6 +387,7 @@ def pressure_term(mesh: Mesh, facets, pressure, origin=None, *, what: str = "pre
             centroid of each surface's rim (of its corners if closed). A rim that slides
             on a symmetry plane needs ``c`` on that plane (:func:`check_closed`).
         what: how error messages name the term.
+        follower: an open surface whose rim moves (no potential; see the module docstring).
 
     Raises:
         ValueError: an empty facet set, a facet that is not a boundary facet of the mesh
@@ -392,6 +452,7 @@ def pressure_term(mesh: Mesh, facets, pressure, origin=None, *, what: str = "pre
         origin=jnp.asarray(np.stack(origins).astype(dt)),
         pressure=jnp.asarray(p.astype(dt)),
         element=mesh.element,
+        follower=bool(follower),
     )
 
 
@@ -413,6 +474,8 @@ def check_closed(term: Pressure, points, mask, values=None, *, what: str = "pres
             do (the follower load on such a surface has a non-symmetric tangent: no
             potential).
     """
+    if term.follower:  # declared non-conservative: nothing to check
+        return
     X = np.asarray(points, dtype=np.float64)
     mask = np.asarray(mask, dtype=bool)
     vals = X if values is None else np.asarray(values, dtype=np.float64)
@@ -440,5 +503,6 @@ def check_closed(term: Pressure, points, mask, values=None, *, what: str = "pres
                 f"c = {c.tolist()} (e.g. nodes {bad[0].tolist()} at {X[bad[0]].tolist()}): the "
                 "follower pressure is then not conservative (no potential, non-symmetric "
                 "tangent). Fix the rim, constrain it to a symmetry plane through c (set the "
-                "closing point with origin = [...]), or load a closed surface"
+                "closing point with origin = [...]), load a closed surface, or declare the "
+                "load a follower load (follower=True: exact residual, quasi-Newton tangent)"
             )

@@ -49,6 +49,7 @@ from jax.ad_checkpoint import checkpoint_name
 from ..loads import Dirichlet
 from ..mechanics import potential as pot_mod
 from ..mechanics.potential import Potential
+from ..mechanics.pressure import is_conservative
 from .linear import LinearState, NewtonSystem, exact_system
 from .newton import Newton, minimize, solved_potential
 from .results import Solution, Status
@@ -154,6 +155,17 @@ def _cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, lstate
     return _nan_unless(ok, pot_bar), _nan_unless(ok, vals_bar)
 
 
+def _refuse_follower(pot: Potential) -> None:
+    """Implicit derivatives assume a symmetric Hessian: refuse a follower pressure."""
+    if not is_conservative(pot.pressure):
+        raise NotImplementedError(
+            "derivatives through a solve with a follower pressure on an open surface "
+            "(Pressure.follower) are not implemented: the adjoint needs the transpose of its "
+            "non-symmetric Jacobian. Close the surface or hold its rim (a conservative "
+            "pressure, -p V), which is differentiable"
+        )
+
+
 @functools.lru_cache(maxsize=64)
 def _attach_fn(solver: Newton, adj: ImplicitAdjoint):
     """``attach(pot, bc, x*, status, lstate) = x*`` with the implicit-function-theorem VJP
@@ -168,6 +180,7 @@ def _attach_fn(solver: Newton, adj: ImplicitAdjoint):
 
     def bwd(saved, xbar):
         pot, bc, x, status, lstate = saved
+        _refuse_follower(pot)
         pot_bar, vals_bar = _cotangents(solver, adj, pot, bc, x, status, lstate, xbar)
         # the cotangent of the bool mask is a float0 numpy array, which JAX takes for it
         bc_bar = Dirichlet(mask=cast(jax.Array, _float0_like(bc.mask)), values=vals_bar)
@@ -194,6 +207,7 @@ def _zero_tangent(a):
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _tangent(solver: Newton, adj: ImplicitAdjoint, pot, bc, res: Solution, lstate, pot_dot, bc_dot):
     """``ẋ`` of x* (one tangent solve, transposable; NaN if anything failed)."""
+    _refuse_follower(pot)
     x = res.x
     fm = (~bc.mask).astype(x.dtype)
     system = exact_system(solved_potential(pot, res), x, bc.mask)
