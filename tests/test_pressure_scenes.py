@@ -58,6 +58,14 @@ def test_bad_pressure_scenes_refused_at_build(overrides, message):
         ({"pressure.0.cavity": "lung"}, "names no [[cavity]]"),
         ({"cavity.0.volume": -1e-3}, "[cavity][0].volume"),
         ({"cavity.0.volume": 1e-3}, "a scene with volume control has no [[pressure]]"),
+        ({"solver.devices": 2}, "[[pressure]] runs on one device"),
+        (
+            {
+                "integrator": {"type": "dynamic", "h": 0.01, "duration": 0.1},
+                "material.density": 1e3,
+            },
+            "[[pressure]] is supported in static scenes",
+        ),
     ],
 )
 def test_bad_pressure_scenes_refused_at_load(overrides, message):

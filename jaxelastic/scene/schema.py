@@ -1220,8 +1220,11 @@ class SceneSpec(Table):
                 f"[cavity] {controlled[0]!r} has a volume (volume control: its pressure is the "
                 "unknown); a scene with volume control has no [[pressure]] entries"
             )
-        if (self.pressure or controlled) and not self.static:
-            return "[[pressure]] is supported in static scenes ([integrator].type = 'static')"
+        which = "[[pressure]]" if self.pressure else "[[cavity]]"
+        if (self.pressure or self.cavity) and not self.static:
+            return f"{which} is supported in static scenes ([integrator].type = 'static')"
+        if (self.pressure or self.cavity) and self.solver.devices > 1:
+            return f"{which} runs on one device ([solver].devices = 1)"
         return None
 
     def dim_problem(self, dim: int) -> str | None:
