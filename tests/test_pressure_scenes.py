@@ -95,10 +95,11 @@ def test_balloon_runs_and_reports_its_pressure_volume_curve(tmp_path):
     assert abs(p - 5.0e4) / 5.0e4 < 0.01
 
 
-@pytest.mark.extended
+@pytest.mark.slow
 def test_balloon_under_volume_control(tmp_path):
     """[[cavity]] volume = 1.3³ V₀ (no [[pressure]]): the cavity reaches it in the load steps
-    and the pressure found agrees with the closed form at λ_a = 1.3 within 1 %."""
+    and the pressure found agrees with the closed form at λ_a = 1.3 within 1 % (163–212 s
+    on a loaded 2-core machine, hence the slow tier)."""
     from jaxelastic.scene import run_scene
 
     V0 = math.pi / 6 * 0.1**3
