@@ -315,7 +315,8 @@ def pressure_load(mesh: Mesh, facets, pressure, origin=None, *, follower: bool =
         exact (conservative) for closed cavities and for rims that are fixed or slide on a
         symmetry plane; :func:`jaxelastic.solve` checks that against its Dirichlet data.
         ``follower=True`` declares an open surface whose rim moves: the exact follower
-        residual with a symmetric quasi-Newton tangent (no potential, no derivatives).
+        residual with a symmetric quasi-Newton tangent (no potential; reverse-mode
+        derivatives only).
     """
     return pressure_term(mesh, facets, pressure, origin, follower=follower)
 

@@ -40,9 +40,9 @@ term's gradient is then the exact follower residual ``p ∫ n N_a da`` facet by 
 (a quasi-Newton tangent: every symmetric linear solver still applies; the skew part
 ``(J − Jᵀ)/2`` is left out, so Newton converges linearly), and its energy ``−p V`` of the
 cone-closed surface serves only to reject inverted trial steps: the Newton line search
-accepts a step on the decrease of the residual (:func:`is_conservative`). Derivatives
-through such a solve (an adjoint with the transpose of the true Jacobian) are not
-implemented and refused.
+accepts a step on the decrease of the residual (:func:`is_conservative`). Reverse-mode
+derivatives through such a solve solve the adjoint with the transpose of the true Jacobian
+(:mod:`jaxelastic.solvers.adjoint`); forward mode is refused.
 
 **Volume control** (the cavity volume prescribed, the pressure an unknown): with ``target``
 ``T`` and ``kappa`` ``κ`` set, the term is the augmented Lagrangian

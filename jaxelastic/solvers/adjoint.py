@@ -27,6 +27,11 @@ or ``jax.jvp`` it is the same solve, on concrete values, as without differentiat
 (:func:`~jaxelastic.solvers.newton.minimize`); the adjoint and tangent computations are
 compiled functions of their own.
 
+A follower pressure on an open surface (``Pressure.follower``) has no potential and a
+non-symmetric Jacobian ``J``: its reverse-mode adjoint solves ``J_ffᵀ λ = x̄_f`` with the
+transpose (``Jᵀv`` by reverse-mode autodiff of the residual; restarted GMRES, Saad &
+Schultz 1986) and ``v̄_D = x̄_D − (Jᵀλ)_D``; forward mode is refused for it.
+
 Failure is loud: if the forward Newton solve or the adjoint solve did not converge,
 *every* floating-point cotangent is NaN; :func:`value_and_grad` (and the fitting loop)
 raise :class:`GradientError`. Gradients are never silently computed at a non-equilibrium
@@ -137,13 +142,45 @@ def _zeros_like_tree(tree):
     return jax.tree_util.tree_map(_zero_tangent, tree)
 
 
+GMRES_RESTART = 60
+"""Krylov dimension of the restarted GMRES of a non-symmetric adjoint (follower load)."""
+
+
+def _transpose_solve(pot: Potential, x, mask, adj: ImplicitAdjoint, xbar):
+    """A follower load's adjoint ``J_ffᵀ λ = x̄_f`` with the true (non-symmetric) Jacobian
+    ``J = ∂g/∂x`` (``Jᵀv`` by reverse mode), by restarted GMRES (Saad & Schultz 1986),
+    unpreconditioned: ``(λ, Jᵀ, converged)``."""
+    fm = (~mask).astype(x.dtype)
+    _, JT_full = jax.vjp(lambda y: pot_mod.gradient(pot, y), x)
+
+    def JT(v):
+        return JT_full(v)[0]
+
+    def A(v):
+        return fm * JT(fm * v) + (1.0 - fm) * v
+
+    b = fm * xbar
+    maxiter = max(1, adj.max_iter // GMRES_RESTART)
+    y, _ = jax.scipy.sparse.linalg.gmres(
+        A, b, tol=adj.rtol, atol=0.0, restart=GMRES_RESTART, maxiter=maxiter
+    )
+    r = A(y) - b
+    bn = jnp.sqrt(jnp.sum(b * b))
+    ok = (jnp.sqrt(jnp.sum(r * r)) <= 10.0 * adj.rtol * bn) | (bn == 0)
+    return fm * y, JT, ok & jnp.all(jnp.isfinite(y))
+
+
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, lstate, xbar):
     """``(pot̄, bc̄)`` of x* from ``x̄`` (one adjoint solve; NaN if anything failed)."""
     mask = bc.mask
     fm = (~mask).astype(x.dtype)
-    system = exact_system(pot, x, mask)
-    lam, adj_ok = _solve_ff(solver, lstate, adj, system, xbar)
+    if is_conservative(pot.pressure):
+        system = exact_system(pot, x, mask)
+        lam, adj_ok = _solve_ff(solver, lstate, adj, system, xbar)
+        KT = system.H  # symmetric: Kᵀλ = Kλ
+    else:  # a follower load: the transpose of the non-symmetric Jacobian
+        lam, KT, adj_ok = _transpose_solve(pot, x, mask, adj, xbar)
     ok = (status == Status.SUCCESS) & adj_ok
 
     def g_free(p):
@@ -151,18 +188,19 @@ def _cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, lstate
 
     _, vjp = jax.vjp(g_free, pot)
     (pot_bar,) = vjp(-lam)
-    vals_bar = jnp.where(mask, xbar - system.H(lam), 0.0)
+    vals_bar = jnp.where(mask, xbar - KT(lam), 0.0)
     return _nan_unless(ok, pot_bar), _nan_unless(ok, vals_bar)
 
 
 def _refuse_follower(pot: Potential) -> None:
-    """Implicit derivatives assume a symmetric Hessian: refuse a follower pressure."""
+    """The forward-mode tangent solve assumes a symmetric Hessian: refuse a follower
+    pressure there (reverse mode solves with the transpose, :func:`_transpose_solve`)."""
     if not is_conservative(pot.pressure):
         raise NotImplementedError(
-            "derivatives through a solve with a follower pressure on an open surface "
-            "(Pressure.follower) are not implemented: the adjoint needs the transpose of its "
-            "non-symmetric Jacobian. Close the surface or hold its rim (a conservative "
-            "pressure, -p V), which is differentiable"
+            "forward-mode derivatives (ImplicitAdjoint(mode='forward')) through a solve with "
+            "a follower pressure on an open surface (Pressure.follower) are not implemented: "
+            "use reverse mode (jax.grad, the default), whose adjoint solves with the "
+            "transpose of the non-symmetric Jacobian"
         )
 
 
@@ -180,7 +218,6 @@ def _attach_fn(solver: Newton, adj: ImplicitAdjoint):
 
     def bwd(saved, xbar):
         pot, bc, x, status, lstate = saved
-        _refuse_follower(pot)
         pot_bar, vals_bar = _cotangents(solver, adj, pot, bc, x, status, lstate, xbar)
         # the cotangent of the bool mask is a float0 numpy array, which JAX takes for it
         bc_bar = Dirichlet(mask=cast(jax.Array, _float0_like(bc.mask)), values=vals_bar)
