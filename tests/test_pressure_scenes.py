@@ -24,6 +24,13 @@ def test_balloon_builds_with_one_pressure_surface_and_a_cavity():
     assert b.potential.f_ext is None  # the pressure is no dead load
 
 
+def test_follower_pressure_scene_accepts_a_free_rim():
+    """With follower = true the rim check is off (the follower load needs no closed lid)."""
+    over = {"dirichlet.2.components": ["x"], "pressure.0.follower": True}
+    b = build(load_scene("balloon", overrides=over))
+    assert b.potential.pressure is not None and b.potential.pressure.follower
+
+
 def test_scene_without_pressure_compiles_none():
     b = build(load_scene("cook"))
     assert b.potential.pressure is None and b.cavities is None

@@ -59,9 +59,11 @@ def _corner_set(facets: np.ndarray, dim: int) -> set:
     return {tuple(sorted(f[:dim])) for f in np.asarray(facets).tolist()}
 
 
-def _single(scene: Scene, key: str, mesh: Mesh, facets, p: float, origin) -> Pressure:
+def _single(
+    scene: Scene, key: str, mesh: Mesh, facets, p: float, origin, follower: bool = False
+) -> Pressure:
     try:
-        return pressure_term(mesh, facets, p, origin, what=key)
+        return pressure_term(mesh, facets, p, origin, what=key, follower=follower)
     except ValueError as e:
         raise scene.error(str(e)) from None
 
@@ -124,7 +126,7 @@ def build_pressure(
                 )
             origin = origin if origin is not None else np.asarray(cav[k][1].origin[0])
             cav_p[k] += p.pressure
-        t = _single(scene, key, mesh, facets, p.pressure, origin)
+        t = _single(scene, key, mesh, facets, p.pressure, origin, p.follower)
         try:
             check_closed(t, X, mask, vals, what=key)
         except ValueError as e:
@@ -132,8 +134,10 @@ def build_pressure(
         sets.append(np.asarray(t.facets))
         ps.append(p.pressure)
         origins.append(np.asarray(t.origin[0]))
-    if sets:
-        pot = pot.replace(pressure=pressure_term(mesh, sets, ps, np.stack(origins)))
+    if sets:  # one term; any follower surface makes it a follower term (exact for all)
+        follower = any(p.follower for p in spec.pressure)
+        term = pressure_term(mesh, sets, ps, np.stack(origins), follower=follower)
+        pot = pot.replace(pressure=term)
     if not cav:
         return pot, None
     term = pressure_term(

@@ -702,6 +702,11 @@ class PressureSpec(Table):
         description="name of the [[cavity]] this surface bounds (its facets must be among "
         "the cavity's; the cavity's origin is the default)",
     )
+    follower: bool = Field(
+        default=False,
+        description="an open surface whose rim moves: the exact follower load without a "
+        "potential (quasi-Newton, linear convergence; see the pressure guide)",
+    )
 
 
 class CavitySpec(Table):
