@@ -371,6 +371,29 @@ def _default_origin(X: np.ndarray, facets: np.ndarray, dim: int) -> np.ndarray:
     return X[nodes].mean(axis=0)
 
 
+def _pressures(pressure, n_s: int, what: str) -> np.ndarray:
+    """``(n_s,)`` finite pressures from a scalar or one per surface, or a ValueError."""
+    p = np.asarray(pressure, dtype=np.float64)
+    p = np.broadcast_to(p, (n_s,)) if p.ndim == 0 else p
+    if p.shape != (n_s,):
+        raise ValueError(f"{what}: pressure must be a scalar or have shape ({n_s},), got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{what}: pressure must be finite, got {p.tolist()}")
+    return p
+
+
+def _origins(origin, n_s: int, d: int, what: str) -> np.ndarray:
+    """``(n_s, d)`` finite closing points from one or one per surface, or a ValueError."""
+    o = np.asarray(origin, dtype=np.float64)
+    o = np.broadcast_to(o, (n_s, d)) if o.shape == (d,) else o
+    if o.shape != (n_s, d) or not np.all(np.isfinite(o)):
+        raise ValueError(
+            f"{what}: origin must be finite with shape ({d},) or ({n_s}, {d}), got "
+            f"{np.asarray(origin).tolist()!r}"
+        )
+    return o
+
+
 def pressure_term(
     mesh: Mesh, facets, pressure, origin=None, *, what: str = "pressure", follower: bool = False
 ) -> Pressure:
@@ -401,15 +424,7 @@ def pressure_term(
     if not sets:
         raise ValueError(f"{what}: no surfaces given")
     n_s = len(sets)
-    p = (
-        np.broadcast_to(np.asarray(pressure, dtype=np.float64), (n_s,))
-        if np.ndim(pressure) == 0
-        else np.asarray(pressure, dtype=np.float64)
-    )
-    if p.shape != (n_s,):
-        raise ValueError(f"{what}: pressure must be a scalar or have shape ({n_s},), got {p.shape}")
-    if not np.all(np.isfinite(p)):
-        raise ValueError(f"{what}: pressure must be finite, got {p.tolist()}")
+    p = _pressures(pressure, n_s, what)
     fs, owners, slots, surf, origins = [], [], [], [], []
     for s, f in enumerate(sets):
         name = what if n_s == 1 else f"{what} (surface {s})"
@@ -432,14 +447,7 @@ def pressure_term(
         surf.append(np.full(of.shape[0], s))
         origins.append(_default_origin(X, of, d))
     if origin is not None:
-        o = np.asarray(origin, dtype=np.float64)
-        o = np.broadcast_to(o, (n_s, d)) if o.shape == (d,) else o
-        if o.shape != (n_s, d) or not np.all(np.isfinite(o)):
-            raise ValueError(
-                f"{what}: origin must be finite with shape ({d},) or ({n_s}, {d}), got "
-                f"{np.asarray(origin).tolist()!r}"
-            )
-        origins = list(o)
+        origins = list(_origins(origin, n_s, d, what))
     dt = np.dtype(mesh.points.dtype)
     cells = np.concatenate(owners)
     i32 = jnp.int32
