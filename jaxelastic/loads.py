@@ -1,10 +1,16 @@
-"""Boundary conditions and loads: Dirichlet data, tractions, point loads, gravity, masses.
+"""Boundary conditions and loads: Dirichlet data, tractions, point loads, gravity, masses,
+pressure on cavities.
 
 Node sets are chosen on the host (NumPy) once per scene: by predicate on rest positions, by
 box or plane, or from a mesh file's physical groups (:mod:`jaxelastic.io`). Dead loads
 (tractions per reference area, point loads, body forces) are integrated once into a
 constant nodal vector ``f_ext`` of shape ``(n_nodes, dim)`` [force]; the solvers add
 ``−f_extᵀx`` to the potential only when a scene has loads.
+
+Pressure on cavity boundaries (a follower load on the deformed surface) is not a constant
+vector but a term of the potential, ``−p V(x)``: :func:`pressure_load` builds it from the
+same facet sets (:class:`~jaxelastic.mechanics.pressure.Pressure`, for
+``Potential(..., pressure=...)``).
 
 Consistent integration: a constant traction t on a facet gives ``t·∫N_a dA`` to its nodes
 (linear facets: ``A·t/dim`` each; 3-node P2 edges: ``A/6, A/6, 2A/3``; 6-node P2 triangles:
@@ -32,6 +38,7 @@ from jax.core import Tracer
 from numpy.typing import ArrayLike
 
 from .deprecation import moved_attributes
+from .mechanics.pressure import Pressure, pressure_term
 from .mesh import Mesh, boundary_facets, geometry
 from .mesh.elements import Element
 
@@ -48,6 +55,7 @@ __all__ = [
     "facet_normals",
     "facet_integrals",
     "traction_load",
+    "pressure_load",
     "point_load",
     "gravity_load",
     "lumped_mass",
@@ -316,6 +324,29 @@ def traction_load(mesh: Mesh, facets, traction) -> np.ndarray:
     for a in range(facets.shape[1]):
         np.add.at(f, facets[:, a], Nint[:, a, None] * t)
     return _mesh_dtype(mesh, f)
+
+
+def pressure_load(mesh: Mesh, facets, pressure, origin=None, *, follower: bool = False) -> Pressure:
+    """A follower pressure on boundary facets as a potential term ``−Σ_s p_s V_s(x)``.
+
+    Args:
+        facets: ``(m, n_facet_nodes)`` boundary facets (e.g. :func:`facets_where`), or a
+            list of such arrays, one per cavity surface.
+        pressure: [Pa] ``()`` or one per surface; positive pushes against the body's outward
+            normal, into the body (an internal pressure inflates its cavity).
+        origin: the closing point of each surface's opening (default: the rest centroid of
+            its rim); a rim sliding on a symmetry plane needs it on that plane.
+
+    Returns:
+        A :class:`~jaxelastic.mechanics.pressure.Pressure` for
+        ``Potential(..., pressure=...)``; ``term.volumes(x)`` gives the cavity volumes. It is
+        exact (conservative) for closed cavities and for rims that are fixed or slide on a
+        symmetry plane; :func:`jaxelastic.solve` checks that against its Dirichlet data.
+        ``follower=True`` declares an open surface whose rim moves: the exact follower
+        residual with a symmetric quasi-Newton tangent (no potential; reverse-mode
+        derivatives only).
+    """
+    return pressure_term(mesh, facets, pressure, origin, follower=follower)
 
 
 def point_load(mesh: Mesh, nodes, force) -> np.ndarray:

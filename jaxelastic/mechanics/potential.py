@@ -7,6 +7,8 @@
   (Kim & Eberle 2022, §"Time integration"; REFERENCES "Integrators");
 * optional contact with rigid obstacles ``Π_c`` (IPC barrier + lagged friction,
   :mod:`jaxelastic.contact`; ``contact=None``: nothing of it is traced);
+* optional pressure on cavity boundaries ``−Σ_s p_s V_s(x)`` (:mod:`~.pressure`; a follower
+  load, conservative for closed cavities; ``pressure=None``: nothing of it is traced);
 * optional mass-proportional Rayleigh damping ``c_M = α/h`` and stiffness-proportional
   ``c_K/2 (x − x_n)ᵀ K(x_n) (x − x_n)``, ``c_K = β/h``.
 
@@ -37,6 +39,7 @@ from ..mesh import Mesh
 from .checks import check_psi
 from .hessians import element_hessians
 from .kernels import Psi, assemble, energy, forces, hvp
+from .pressure import Pressure
 from .psd import project_element_psd, project_psd
 
 __all__ = [
@@ -76,6 +79,8 @@ class Potential:
         stiffness_damping: scalar c_K, or None.
         contact: a :class:`~jaxelastic.contact.Contact` barrier (+ friction) term against
             obstacles, or None (nothing of contact is traced).
+        pressure: a :class:`~jaxelastic.mechanics.pressure.Pressure` term (follower
+            pressure on cavity boundaries, potential ``−Σ p V``), or None.
         psi: the strain-energy density (static).
 
     Raises (at construction, see :func:`check_potential`):
@@ -93,6 +98,7 @@ class Potential:
     mass_damping: jax.Array | None = None
     stiffness_damping: jax.Array | None = None
     contact: Any = None
+    pressure: Pressure | None = None
     psi: Psi = dataclasses.field(kw_only=True, metadata=dict(static=True))
 
     def __post_init__(self):
@@ -115,6 +121,7 @@ jax.tree_util.register_dataclass(
         "mass_damping",
         "stiffness_damping",
         "contact",
+        "pressure",
     ],
     meta_fields=["psi"],
 )
@@ -148,6 +155,7 @@ def _widening_leaves(pot: Potential, mesh_dtype):
     """``(name, dtype)`` of every strongly typed float leaf wider than the mesh's dtype."""
     named = [(k, getattr(pot, k)) for k in _FIELD_SHAPES] + [("params", pot.params)]
     named.append(("contact", pot.contact))
+    named.append(("pressure", pot.pressure))
     for name, tree in named:
         for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
             if not is_array(leaf) or getattr(leaf, "weak_type", False):
@@ -221,6 +229,8 @@ def value(pot: Potential, x: jax.Array) -> jax.Array:
         v = v + 0.5 * pot.stiffness_damping * jnp.sum(dx * Kdx)
     if pot.contact is not None:
         v = v + pot.contact.energy(x)
+    if pot.pressure is not None:
+        v = v + pot.pressure.energy(x)
     return v
 
 
@@ -240,6 +250,8 @@ def gradient(pot: Potential, x: jax.Array) -> jax.Array:
         g = g + pot.stiffness_damping * hvp(pot.psi, x_prev, x - x_prev, pot.mesh, pot.params)
     if pot.contact is not None:
         g = g + pot.contact.gradient(x)
+    if pot.pressure is not None:
+        g = g + pot.pressure.gradient(x)
     return g
 
 
@@ -268,6 +280,8 @@ def hessian_vp(
         Hv = Hv + pot.stiffness_damping * hvp(pot.psi, x_prev, v, pot.mesh, pot.params)
     if pot.contact is not None:
         Hv = Hv + pot.contact.hvp(x, v, exact=exact_contact)
+    if pot.pressure is not None:
+        Hv = Hv + pot.pressure.hvp(x, v)
     return Hv
 
 
@@ -349,9 +363,9 @@ def projection_dim(pot: Potential) -> int:
     """The ``dim`` for :func:`~jaxelastic.mechanics.psd.project_element_psd` of this potential's
     element Hessians (:func:`elastic_element_hessians`): the mesh's dimension where
     elasticity alone contributes (the rigid translations are in every Hessian's kernel),
-    0 with a contact term (its per-node blocks are not translation-invariant:
+    0 with a contact or pressure term (its blocks are not translation-invariant:
     :func:`~jaxelastic.mechanics.psd.project_psd`)."""
-    return pot.mesh.dim if pot.contact is None else 0
+    return pot.mesh.dim if pot.contact is None and pot.pressure is None else 0
 
 
 def projected_element_hessians(pot: Potential, Ke: jax.Array) -> jax.Array:
@@ -373,8 +387,13 @@ def elastic_element_hessians(
     contact term, its per-node blocks are added to one element per contact node
     (:meth:`~jaxelastic.contact.Contact.add_hessian_blocks`; PSD-projected unless
     ``exact_contact``; ``pair_hessians``: the self-contact pair Hessians at x with that
-    projection, :meth:`~jaxelastic.contact.Contact.pair_hessians`, if computed before)."""
+    projection, :meth:`~jaxelastic.contact.Contact.pair_hessians`, if computed before); with
+    a pressure term, each loaded facet's block is added to its cell
+    (:meth:`~jaxelastic.mechanics.pressure.Pressure.add_hessian_blocks`, the touched cells
+    projected again when ``project``)."""
     Ke = element_hessians(pot.psi, x, pot.mesh, pot.params, project=project)
+    if pot.pressure is not None:
+        Ke = pot.pressure.add_hessian_blocks(Ke, x, project=project)
     if pot.contact is not None:
         Ke = pot.contact.add_hessian_blocks(
             Ke, pot.mesh, x, project=not exact_contact, pair_hessians=pair_hessians
@@ -399,9 +418,11 @@ def with_loop_terms(pot: Potential, terms: dict[str, Any]) -> Potential:
 
 
 def has_coupling(pot: Potential) -> bool:
-    """Whether the Hessian couples nodes of different elements (self-contact pairs), so
-    the Newton operator is more than the assembled element matrix."""
-    return pot.contact is not None and getattr(pot.contact, "self_contact", None) is not None
+    """Whether the Hessian couples nodes of different elements (self-contact pairs, a
+    cavity's volume control), so the Newton operator is more than the assembled element
+    matrix."""
+    sc = pot.contact is not None and getattr(pot.contact, "self_contact", None) is not None
+    return sc or (pot.pressure is not None and pot.pressure.kappa is not None)
 
 
 def coupling_data(pot: Potential, x: jax.Array, exact: bool = False):
@@ -413,7 +434,17 @@ def coupling_data(pot: Potential, x: jax.Array, exact: bool = False):
 
 def coupling(pot: Potential, x: jax.Array, data=None, exact: bool = False):
     """The Hessian's coupling of nodes of different elements as ``v ↦ H_c v``
-    (``(n_nodes, dim) -> (n_nodes, dim)``), or None where there is none."""
-    if pot.contact is None:
+    (``(n_nodes, dim) -> (n_nodes, dim)``): self-contact pairs and a cavity's volume
+    control (:meth:`~jaxelastic.mechanics.pressure.Pressure.coupling`), or None where there
+    is none."""
+    ops = []
+    if pot.contact is not None:
+        ops.append(pot.contact.coupling(x, exact=exact, pair_hessians=data))
+    if pot.pressure is not None:
+        ops.append(pot.pressure.coupling(x))
+    ops = [op for op in ops if op is not None]
+    if not ops:
         return None
-    return pot.contact.coupling(x, exact=exact, pair_hessians=data)
+    if len(ops) == 1:
+        return ops[0]
+    return lambda v: ops[0](v) + ops[1](v)

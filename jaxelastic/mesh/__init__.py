@@ -4,7 +4,8 @@ Modules: :mod:`~jaxelastic.mesh.core` (the pytree and its validating constructor
 :mod:`~jaxelastic.mesh.elements` (reference elements and quadrature rules),
 :mod:`~jaxelastic.mesh.geometry` (the rest quantities as functions of the rest points, on
 NumPy or JAX arrays: what makes :meth:`Mesh.with_points` differentiable),
-:mod:`~jaxelastic.mesh.generators` (rectangle, box, Cook's membrane),
+:mod:`~jaxelastic.mesh.generators` (rectangle, box, Cook's membrane, spherical shell,
+annulus),
 :mod:`~jaxelastic.mesh.quadratic` (P2 / composite lifting, formulation switch) and
 :mod:`~jaxelastic.mesh.boundary` (boundary facets and nodes). Sharded solves partition a
 mesh over devices with :mod:`jaxelastic.parallel`.
@@ -19,9 +20,11 @@ from .core import Mesh as Mesh
 from .core import MeshError as MeshError
 from .core import check_formulation as check_formulation
 from .core import from_arrays as from_arrays
+from .generators import annulus as annulus
 from .generators import box as box
 from .generators import cook_membrane as cook_membrane
 from .generators import rectangle as rectangle
+from .generators import spherical_shell as spherical_shell
 from .geometry import invalid_cells as invalid_cells
 from .quadratic import linear_cells as linear_cells
 from .quadratic import to_quadratic as to_quadratic
@@ -37,6 +40,8 @@ __all__ = [
     "rectangle",
     "box",
     "cook_membrane",
+    "spherical_shell",
+    "annulus",
     "boundary_facets",
     "boundary_nodes",
     "to_quadratic",

@@ -1,4 +1,5 @@
-"""Mesh generators: structured rectangles and boxes, and Cook's membrane.
+"""Mesh generators: structured rectangles and boxes, Cook's membrane, thick spherical
+shells and annuli (the inflation benchmarks).
 
 Each returns a validated :class:`~jaxelastic.mesh.Mesh`; ``order=2`` lifts it to P2 and
 ``formulation="fbar"``/``"bbar"`` selects F-bar/B-bar (with ``order=1``: the composite
@@ -13,7 +14,7 @@ from ..cache import ensure_persistent_cache
 from .core import Mesh, check_formulation, from_arrays
 from .quadratic import to_quadratic
 
-__all__ = ["rectangle", "box", "cook_membrane"]
+__all__ = ["rectangle", "box", "cook_membrane", "spherical_shell", "annulus"]
 
 
 def _check_counts(**counts):
@@ -166,6 +167,130 @@ def cook_membrane(n: int, *, order: int = 1, formulation: str = "standard", **kw
     n1, n2, n3 = n0 + 1, n0 + n + 2, n0 + n + 1
     tris = np.concatenate([np.stack([n0, n1, n2], 1), np.stack([n0, n2, n3], 1)])
     return _finish(pts, tris, "tri3", order, formulation, kw)
+
+
+def _merge(pts: np.ndarray, cells: np.ndarray, scale: float):
+    """Merge coincident points (rounded to 1e-9 of ``scale``): ``(points, cells)``."""
+    key = np.round(pts / (1e-9 * scale)).astype(np.int64)
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return pts[first], inv.ravel()[cells]
+
+
+def _oriented(pts: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """P1 cells with negative measure reoriented (first two corners swapped after vertex 0)."""
+    D = pts[cells[:, 1:]] - pts[cells[:, :1]]  # (c, d, d)
+    neg = np.linalg.det(D) < 0
+    cells = cells.copy()
+    cells[neg, 1], cells[neg, 2] = cells[neg, 2], cells[neg, 1].copy()
+    return cells
+
+
+def _curved(m: Mesh, order: int, formulation: str) -> Mesh:
+    """Lift a P1 mesh of a shell centred at the origin; the mid-edge nodes of P2 moved to
+    the mean radius of the edge's ends along their own direction (a curved, isoparametric
+    boundary: the P2 volume error is then O(h⁴), not the straight-edged O(h²))."""
+    if order == 1 and formulation == "standard":
+        return m
+    q = to_quadratic(m, composite=order == 1, formulation=formulation)
+    if order == 1:
+        return q
+    cells = np.asarray(q.cells)
+    X = np.asarray(q.points, dtype=np.float64).copy()
+    from .elements import edge_table
+
+    loc = edge_table(m.element_type)  # (e, 2) corner pairs of the P1 cell
+    d = m.dim
+    ends = cells[:, loc]  # (c, e, 2)
+    mids = cells[:, d + 1 :]  # (c, e) the mid-edge nodes, in edge order
+    r = np.linalg.norm(X[ends], axis=-1).mean(axis=-1)  # (c, e)
+    dirs = X[mids] / np.linalg.norm(X[mids], axis=-1, keepdims=True)
+    X[mids.ravel()] = (r[..., None] * dirs).reshape(-1, d)
+    return from_arrays(
+        X, cells, q.element, orient="refuse", dtype=q.points.dtype, formulation=formulation
+    )
+
+
+def spherical_shell(
+    inner: float,
+    outer: float,
+    n: int,
+    n_r: int,
+    *,
+    octant: bool = True,
+    order: int = 1,
+    formulation: str = "standard",
+    **kw,
+) -> Mesh:
+    """Tetrahedral mesh of a thick spherical shell ``inner ≤ |X| ≤ outer`` centred at 0.
+
+    The octant ``X ≥ 0`` (or the whole shell, its eight mirror images) is the radial
+    projection of three faces of the cube (equiangular "cubed sphere": each face an
+    ``n × n`` grid, ``tan`` spacing), ``n_r`` layers through the wall, each hexahedron
+    split into 6 tets like :func:`box`. ``order=2``: mid-edge nodes on the spheres (curved
+    facets). The octant's cut faces lie on the planes ``X_i = 0``.
+
+    Args:
+        inner, outer: radii ``0 < inner < outer`` [length].
+        n: cells along each cube-face edge (an octant has ``3 n²`` per layer).
+        n_r: layers through the wall.
+        octant: the octant only (default) or the whole shell.
+        order, formulation: as in :func:`rectangle`.
+    """
+    _check_counts(n=n, n_r=n_r)
+    if not 0 < inner < outer or not np.isfinite(outer):
+        raise ValueError(f"need 0 < inner < outer, got inner={inner!r}, outer={outer!r}")
+    base = box(n, n, n_r, size=(1.0, 1.0, 1.0))
+    P = np.asarray(base.points, dtype=np.float64)
+    cells = np.asarray(base.cells, dtype=np.int64)
+    t = np.tan(0.25 * np.pi * P[:, :2])  # equiangular face coordinates in [0, 1]
+    rad = inner + (outer - inner) * P[:, 2]
+    pts, cls = [], []
+    for face in range(3):  # the cube faces X_face = 1 of the octant
+        q = np.insert(t, face, 1.0, axis=1)
+        q = q / np.linalg.norm(q, axis=1, keepdims=True) * rad[:, None]
+        cls.append(cells + sum(len(p) for p in pts))
+        pts.append(q)
+    X, C = _merge(np.concatenate(pts), np.concatenate(cls), outer)
+    if not octant:
+        signs = np.array([[sx, sy, sz] for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)])
+        X, C = _merge(
+            np.concatenate([X * sg for sg in signs]),
+            np.concatenate([C + i * len(X) for i in range(8)]),
+            outer,
+        )
+    m = from_arrays(X, _oriented(X, C), "tet4", **kw)
+    return _curved(m, order, formulation)
+
+
+def annulus(
+    inner: float,
+    outer: float,
+    n_theta: int,
+    n_r: int,
+    *,
+    quarter: bool = True,
+    order: int = 1,
+    formulation: str = "standard",
+    **kw,
+) -> Mesh:
+    """Triangle mesh of the annulus ``inner ≤ |X| ≤ outer`` (a thick tube's cross-section).
+
+    The quarter ``X ≥ 0`` (cut edges on ``x = 0`` and ``y = 0``) or the whole ring:
+    ``n_theta`` cells around (per quarter), ``n_r`` through the wall. ``order=2``:
+    mid-edge nodes on the circles. ``order``/``formulation`` as in :func:`rectangle`.
+    """
+    _check_counts(n_theta=n_theta, n_r=n_r)
+    if not 0 < inner < outer or not np.isfinite(outer):
+        raise ValueError(f"need 0 < inner < outer, got inner={inner!r}, outer={outer!r}")
+    nt = n_theta if quarter else 4 * n_theta
+    base = rectangle(nt, n_r)
+    P = np.asarray(base.points, dtype=np.float64)
+    th = P[:, 0] * (0.5 * np.pi if quarter else 2.0 * np.pi)
+    r = inner + (outer - inner) * P[:, 1]
+    X = np.stack([r * np.cos(th), r * np.sin(th)], axis=1)
+    X, C = _merge(X, np.asarray(base.cells, dtype=np.int64), outer)
+    m = from_arrays(X, _oriented(X, C), "tri3", **kw)
+    return _curved(m, order, formulation)
 
 
 def _finish(pts, cells, p1: str, order: int, formulation: str, kw) -> Mesh:

@@ -141,6 +141,11 @@ def _check(pot: Potential, bc: Dirichlet) -> None:
             "shard: contact terms are not supported on a sharded potential yet (their "
             "contact-node lists use the natural numbering); solve contact scenes on one device"
         )
+    if pot.pressure is not None:
+        raise ValueError(
+            "shard: pressure terms are not supported on a sharded potential yet (their facet "
+            "lists use the natural numbering); solve pressure scenes on one device"
+        )
     if pot.stiffness_damping is not None and pot.x_prev is None:
         raise ValueError("shard: stiffness damping needs x_prev")
 

@@ -47,6 +47,7 @@ from ..solvers import CG, Newton, PreparedSolver, prepare_solver
 from ..solvers.newton import is_quadratic
 from . import memory
 from .callables import CallableSpecError, import_callable, n_positional
+from .cavity import Cavities, build_pressure
 from .contact import build_contact
 from .load import Scene, load_scene
 from .schema import (
@@ -117,6 +118,7 @@ class Built(NamedTuple):
     probes: list
     tip: int
     shard: Sharded | None = None
+    cavities: Cavities | None = None  # [[cavity]]: volumes per load step (jaxelastic.scene.cavity)
 
 
 class Sharded(NamedTuple):
@@ -859,7 +861,9 @@ def build(scene) -> Built:
     dict) into arrays.
 
     The :class:`~jaxelastic.mechanics.potential.Potential` holds only what the scene needs: no mass
-    in statics, no ``f_ext`` without loads or gravity.
+    in statics, no ``f_ext`` without loads or gravity, no pressure without ``[[pressure]]``.
+
+    Long because: each table of the scene is one step here, in the order its arrays need.
 
     Raises:
         SceneError: a mesh too large for the memory (:func:`~jaxelastic.scene.memory.check`,
@@ -911,6 +915,8 @@ def build(scene) -> Built:
         )
         v0 = _initial_velocity(scene, X, bc, dtype)
     pot = build_contact(scene, pot)  # [[obstacle]]: barrier contact (else unchanged)
+    # [[pressure]] / [[cavity]]: the pressure term and the cavities (else unchanged, None)
+    pot, cavities = build_pressure(scene, pot, bc, md, select_facets)
     sharded = None
     if scene.spec.solver.devices > 1:  # [solver] devices: solve on the padded layout
         sharded = _shard(scene, pot, bc_fn, bc, v0)
@@ -933,4 +939,5 @@ def build(scene) -> Built:
         probes=probes,
         tip=tip,
         shard=sharded,
+        cavities=cavities,
     )

@@ -24,6 +24,7 @@ from ..loads import Dirichlet
 from ..parallel.distributed import host_array
 from ..solvers import Solution, SolveError, solve_incremental
 from . import interrupt, memory
+from .cavity import cavity_report, pressure_volume_figure, volume_controlled_solve
 from .contact import contact_report, min_gap
 from .interrupt import Interrupted
 from .load import load_scene
@@ -40,6 +41,7 @@ from .outputs import (
     remove_stale,
     remove_temporaries,
     run_header,
+    save_png,
     state_stress_fields,
     static_figure,
     vtu_plane,
@@ -120,6 +122,8 @@ def static_solve(
         path = sh.bc_fn if fixed is None else (lambda s: fixed)
         x0, pot = sh.x0, sh.potential.replace(mass=None) if pot is None else pot
     on_increment = callback or (lambda s, sol: interrupt.check())
+    if bc is None and built.cavities is not None and built.cavities.volumes is not None:
+        return volume_controlled_solve(built, n, on_increment)  # [[cavity]] volume = ...
     sol = solve_incremental(
         pot,
         path(1.0),
@@ -206,6 +210,10 @@ def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
         gaps = [min_gap(built.potential, so.x, si) for si, so in done]
         summary["contact"] = contact_report(built.potential, x, 1.0, min(gaps, default=None))
     summary["probes"] = probe_report(built, x)
+    if built.cavities is not None:  # [[cavity]]: volumes per load step, P–V plot
+        steps = [(0.0, built.x0, None)]
+        steps += [(si, so.x, so.stats.get("cavity_pressure")) for si, so in done]
+        summary["cavities"] = cavity_report(built.cavities, steps)
     t0 = time.perf_counter()
     # the stresses once for the VTU and the picture (0.07-0.2 s per evaluation at 146k tets)
     fields = state_stress_fields(built, x) if ocfg.vtu else None
@@ -214,6 +222,9 @@ def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
     if ocfg.png:
         interrupt.check("after the static solve")
         summary["outputs"]["png"].append(static_figure(built, out, x, fields=fields))
+        if "cavities" in summary:
+            pv = pressure_volume_figure(summary["cavities"], out, built.scene.name, save_png)
+            summary["outputs"]["png"].append(pv)
     summary["timings"]["outputs"] = time.perf_counter() - t0
 
 

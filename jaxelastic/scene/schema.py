@@ -60,6 +60,8 @@ __all__ = [
     "TractionSpec",
     "PointLoadSpec",
     "GravitySpec",
+    "PressureSpec",
+    "CavitySpec",
     "ObstacleSpec",
     "ContactSpec",
     "SolverSpec",
@@ -678,6 +680,57 @@ class GravitySpec(Table):
     g: Vector = Field(description="gravitational acceleration [m/s^2]")
 
 
+# ----------------------------------------------------------------------------------------
+# [[pressure]] and [[cavity]]: follower pressure on cavity boundaries, cavity volumes
+# ----------------------------------------------------------------------------------------
+
+
+class PressureSpec(Table):
+    """A pressure on the deformed boundary facets of a cavity (a follower load, ramped by
+    ``[integrator].load_steps``); conservative for a closed cavity or one whose rim is fixed
+    or slides on a symmetry plane through ``origin`` (checked before the solve)."""
+
+    facets: Selector = Field(description="the loaded boundary facets (same selectors as nodes)")
+    pressure: Number = Field(
+        description="[Pa]; positive pushes against the outward normal, into the body (an "
+        "internal pressure inflates the cavity)"
+    )
+    origin: Vector | None = Field(
+        default=None,
+        description="[m] the point the opening is closed to (default: the centroid of the "
+        "surface's rim); on the symmetry planes a rim slides on",
+    )
+    cavity: Str | None = Field(
+        default=None,
+        description="name of the [[cavity]] this surface bounds (its facets must be among "
+        "the cavity's; the cavity's origin is the default)",
+    )
+    follower: bool = Field(
+        default=False,
+        description="an open surface whose rim moves: the exact follower load without a "
+        "potential (quasi-Newton, linear convergence; see the pressure guide)",
+    )
+
+
+class CavitySpec(Table):
+    """A cavity whose volume (area in 2D) is reported per load step in summary.json, with a
+    pressure–volume plot."""
+
+    name: Str = Field(description="the cavity's name (summary.json, [[pressure]].cavity)")
+    facets: Selector = Field(description="the boundary facets that bound the cavity")
+    origin: Vector | None = Field(
+        default=None,
+        description="[m] the point the opening is closed to (default: the centroid of the "
+        "surface's rim)",
+    )
+    volume: Positive | None = Field(
+        default=None,
+        description="[m^3] (2D: m^2) volume control: the cavity is brought to this volume in "
+        "the load steps, its wall loaded by the pressure that takes (an unknown; no "
+        "[[pressure]] in the scene then)",
+    )
+
+
 class PlaneObstacle(Table):
     """The half-space behind a plane (its normal points to the free side)."""
 
@@ -1168,6 +1221,12 @@ class SceneSpec(Table):
         default=[], description="nodal forces ([[point_load]])"
     )
     gravity: GravitySpec | None = Field(default=None, description="gravity")
+    pressure: Annotated[list[PressureSpec], BeforeValidator(_array_of_tables)] = Field(
+        default=[], description="follower pressures on cavity boundaries ([[pressure]])"
+    )
+    cavity: Annotated[list[CavitySpec], BeforeValidator(_array_of_tables)] = Field(
+        default=[], description="cavities whose volume is reported ([[cavity]])"
+    )
     obstacle: Annotated[list[ObstacleSpec], BeforeValidator(_array_of_tables)] = Field(
         default=[], description="rigid obstacles with barrier contact ([[obstacle]])"
     )
@@ -1262,6 +1321,9 @@ class SceneSpec(Table):
                 f'[solver].devices = {n_dev}: linear = "{linear}" is a host solver and cannot '
                 'run sharded; use linear = "auto", "cg" or "multilevel"'
             )
+        problem = self._pressure_problem()
+        if problem is not None:
+            return problem
         if self.material.density is None:
             if dynamic:
                 return "[material].density is required for a dynamic scene"
@@ -1277,6 +1339,31 @@ class SceneSpec(Table):
         for i, d in enumerate(self.dirichlet):
             if d.ramp_time is not None:
                 return f"[dirichlet][{i}].ramp_time is only valid in a dynamic scene"
+        return None
+
+    def _pressure_problem(self) -> str | None:
+        """The first inconsistency of [[pressure]] and [[cavity]], or None."""
+        names = [c.name for c in self.cavity]
+        for i, n in enumerate(names):
+            if n in names[:i]:
+                return f"[cavity][{i}].name {n!r} is used twice"
+        for i, p in enumerate(self.pressure):
+            if p.cavity is not None and p.cavity not in names:
+                return (
+                    f"[pressure][{i}].cavity {p.cavity!r} names no [[cavity]] (cavities: "
+                    f"{', '.join(repr(n) for n in names) or 'none'})"
+                )
+        controlled = [c.name for c in self.cavity if c.volume is not None]
+        if controlled and self.pressure:
+            return (
+                f"[cavity] {controlled[0]!r} has a volume (volume control: its pressure is the "
+                "unknown); a scene with volume control has no [[pressure]] entries"
+            )
+        which = "[[pressure]]" if self.pressure else "[[cavity]]"
+        if (self.pressure or self.cavity) and not self.static:
+            return f"{which} is supported in static scenes ([integrator].type = 'static')"
+        if (self.pressure or self.cavity) and self.solver.devices > 1:
+            return f"{which} runs on one device ([solver].devices = 1)"
         return None
 
     def dim_problem(self, dim: int) -> str | None:
@@ -1324,6 +1411,11 @@ class SceneSpec(Table):
                         yield "vec", f"{key}.{k}", getattr(ld, k)
         if self.gravity is not None:
             yield "vec", "[gravity].g", self.gravity.g
+        for sec, items in (("pressure", self.pressure), ("cavity", self.cavity)):
+            for i, ps in enumerate(items):
+                yield from _selector_items(f"[{sec}][{i}].facets", ps.facets)
+                if ps.origin is not None:
+                    yield "vec", f"[{sec}][{i}].origin", ps.origin
         for i, ob in enumerate(self.obstacle):
             for shape in ("plane", "sphere", "box"):
                 spec = getattr(ob, shape)

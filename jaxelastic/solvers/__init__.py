@@ -3,8 +3,9 @@
 ``results`` (Status, Solution, SolveError) → ``linear`` (settings, state, the ``auto``
 table, the one CG) → ``newton`` (settings, state, the one loop) → ``adjoint``
 (implicit-function-theorem derivatives) → ``equilibrium`` (:func:`solve`, the entry point)
-→ ``continuation`` (load stepping on solve) → ``inverse`` (the unloaded rest shape of an
-observed loaded one, :func:`unloaded_shape`).
+→ ``continuation`` (load stepping on solve), ``volume_control`` (prescribed cavity volumes,
+the pressures unknown) → ``inverse`` (the unloaded rest shape of an observed loaded one,
+:func:`unloaded_shape`).
 """
 
 from ..deprecation import moved_attributes
@@ -39,6 +40,8 @@ from .newton import solved_potential as solved_potential
 from .results import Solution as Solution
 from .results import SolveError as SolveError
 from .results import Status as Status
+from .volume_control import cavity_compliance as cavity_compliance
+from .volume_control import solve_volume_controlled as solve_volume_controlled
 
 __all__ = [
     "X_STAR",
@@ -49,6 +52,8 @@ __all__ = [
     "scaled_dirichlet",
     "solve_incremental",
     "unloaded_shape",
+    "solve_volume_controlled",
+    "cavity_compliance",
     "bind_solver",
     "PreparedSolver",
     "is_traced",

@@ -27,6 +27,11 @@ or ``jax.jvp`` it is the same solve, on concrete values, as without differentiat
 (:func:`~jaxelastic.solvers.newton.minimize`); the adjoint and tangent computations are
 compiled functions of their own.
 
+A follower pressure on an open surface (``Pressure.follower``) has no potential and a
+non-symmetric Jacobian ``J``: its reverse-mode adjoint solves ``J_ffᵀ λ = x̄_f`` with the
+transpose (``Jᵀv`` by reverse-mode autodiff of the residual; restarted GMRES, Saad &
+Schultz 1986) and ``v̄_D = x̄_D − (Jᵀλ)_D``; forward mode is refused for it.
+
 Failure is loud: if the forward Newton solve or the adjoint solve did not converge,
 *every* floating-point cotangent is NaN; :func:`value_and_grad` (and the fitting loop)
 raise :class:`GradientError`. Gradients are never silently computed at a non-equilibrium
@@ -51,6 +56,7 @@ from jax.custom_derivatives import SymbolicZero
 from ..loads import Dirichlet
 from ..mechanics import potential as pot_mod
 from ..mechanics.potential import Potential
+from ..mechanics.pressure import is_conservative
 from .linear import HostSolver, LinearState, NewtonSystem, assemble_upper, exact_system
 from .linear.system import mass_or_zeros
 from .newton import Newton, minimize, solved_potential
@@ -141,7 +147,8 @@ def _zeros_like_tree(tree):
 
 def _pullback(pot, mask, x, ok, lam, H_lam, xbar, which: tuple[bool, ...]):
     """``(pot̄, bc̄.values)`` from the adjoint λ: ``θ̄ = −(∂g_f/∂θ)ᵀλ``,
-    ``v̄_D = x̄_D − (Kλ)_D`` (``H_lam`` = Kλ); NaN unless ``ok``.
+    ``v̄_D = x̄_D − (Kᵀλ)_D`` (``H_lam`` = Kᵀλ, the Hessian K symmetric unless a follower
+    load); NaN unless ``ok``.
 
     ``which``: per leaf of ``pot``, whether it is differentiated (JAX's ``perturbed``
     flag); only those leaves' cotangents are formed, the others are None (zero): an eager
@@ -167,13 +174,47 @@ def _pullback(pot, mask, x, ok, lam, H_lam, xbar, which: tuple[bool, ...]):
     return _nan_unless(ok, pot_bar), _nan_unless(ok, vals_bar)
 
 
+GMRES_RESTART = 60
+"""Krylov dimension of the restarted GMRES of a non-symmetric adjoint (follower load)."""
+
+
+def _transpose_solve(pot: Potential, x, mask, adj: ImplicitAdjoint, xbar):
+    """A follower load's adjoint ``J_ffᵀ λ = x̄_f`` with the true (non-symmetric) Jacobian
+    ``J = ∂g/∂x`` (``Jᵀv`` by reverse mode), by restarted GMRES (Saad & Schultz 1986),
+    unpreconditioned: ``(λ, Jᵀ, converged)``."""
+    fm = (~mask).astype(x.dtype)
+    _, JT_full = jax.vjp(lambda y: pot_mod.gradient(pot, y), x)
+
+    def JT(v):
+        return JT_full(v)[0]
+
+    def A(v):
+        return fm * JT(fm * v) + (1.0 - fm) * v
+
+    b = fm * xbar
+    maxiter = max(1, adj.max_iter // GMRES_RESTART)
+    y, _ = jax.scipy.sparse.linalg.gmres(
+        A, b, tol=adj.rtol, atol=0.0, restart=GMRES_RESTART, maxiter=maxiter
+    )
+    r = A(y) - b
+    bn = jnp.sqrt(jnp.sum(b * b))
+    ok = (jnp.sqrt(jnp.sum(r * r)) <= 10.0 * adj.rtol * bn) | (bn == 0)
+    return fm * y, JT, ok & jnp.all(jnp.isfinite(y))
+
+
 @functools.partial(jax.jit, static_argnums=(0, 1, 8))
 def _cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, lstate, xbar, which):
     """``(pot̄, bc̄)`` of x* from ``x̄`` (one adjoint solve; NaN if anything failed)."""
-    system = exact_system(pot, x, bc.mask)
-    lam, adj_ok = _solve_ff(solver, lstate, adj, system, xbar)
+    mask = bc.mask
+    if is_conservative(pot.pressure):
+        system = exact_system(pot, x, mask)
+        lam, adj_ok = _solve_ff(solver, lstate, adj, system, xbar)
+        K_lam = system.H(lam)  # symmetric: Kᵀλ = Kλ
+    else:  # a follower load: the transpose of the non-symmetric Jacobian
+        lam, KT, adj_ok = _transpose_solve(pot, x, mask, adj, xbar)
+        K_lam = KT(lam)
     ok = (status == Status.SUCCESS) & adj_ok
-    return _pullback(pot, bc.mask, x, ok, lam, system.H(lam), xbar, which)
+    return _pullback(pot, bc.mask, x, ok, lam, K_lam, xbar, which)
 
 
 def _host_adjoint(solver: Newton, pot, lstate, *arrays) -> bool:
@@ -185,6 +226,7 @@ def _host_adjoint(solver: Newton, pot, lstate, *arrays) -> bool:
         and getattr(lstate, "host", None) is not None
         and not pot_mod.has_coupling(pot)
         and pot.stiffness_damping is None
+        and is_conservative(pot.pressure)
         and not any(isinstance(a, Tracer) for t in (pot, *arrays) for a in jax.tree.leaves(t))
     )
 
@@ -214,6 +256,18 @@ def _host_cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, l
     y, ok = solver.linear.host_exact(lstate, data, md, b, adj.rtol, adj.max_iter)
     lam = jnp.asarray(np.asarray(y) * np.asarray(fm), x.dtype)
     return _host_pullback(pot, bc.mask, x, status, lam, jnp.asarray(ok), xbar, Ke, which)
+
+
+def _refuse_follower(pot: Potential) -> None:
+    """The forward-mode tangent solve assumes a symmetric Hessian: refuse a follower
+    pressure there (reverse mode solves with the transpose, :func:`_transpose_solve`)."""
+    if not is_conservative(pot.pressure):
+        raise NotImplementedError(
+            "forward-mode derivatives (ImplicitAdjoint(mode='forward')) through a solve with "
+            "a follower pressure on an open surface (Pressure.follower) are not implemented: "
+            "use reverse mode (jax.grad, the default), whose adjoint solves with the "
+            "transpose of the non-symmetric Jacobian"
+        )
 
 
 @functools.lru_cache(maxsize=64)
@@ -280,6 +334,7 @@ def _zero_tangent(a):
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _tangent(solver: Newton, adj: ImplicitAdjoint, pot, bc, res: Solution, lstate, pot_dot, bc_dot):
     """``ẋ`` of x* (one tangent solve, transposable; NaN if anything failed)."""
+    _refuse_follower(pot)
     x = res.x
     fm = (~bc.mask).astype(x.dtype)
     system = exact_system(solved_potential(pot, res), x, bc.mask)

@@ -2,14 +2,14 @@
 
 For loads too large for one Newton solve (buckling-prone, strongly nonlinear, or a boundary
 motion that would tangle the mesh in one step), the load factor ``s`` goes from 0 to 1;
-at each trial ``s`` the potential's external forces are ``s·f_ext`` and the Dirichlet data
-``path(s)`` (default: the prescribed displacement scaled by ``s``). A failed solve halves
-the increment (from the last converged state); a success grows it again (×1.5, at most the
-initial increment). Every increment is one :func:`~jaxelastic.solvers.equilibrium.solve`; all
-share one compilation (only array values change between them). With a contact term
-(``pot.contact``) the obstacles' prescribed motion is evaluated at ``s``, friction is
-lagged at the last converged state, and nodes an obstacle swept over are pushed out of it
-before the increment's Newton solve.
+at each trial ``s`` the potential's external forces are ``s·f_ext`` (pressures ``s·p``)
+and the Dirichlet data ``path(s)`` (default: the prescribed displacement scaled by ``s``).
+A failed solve halves the increment (from the last converged state); a success grows it
+again (×1.5, at most the initial increment). Every increment is one
+:func:`~jaxelastic.solvers.equilibrium.solve`; all share one compilation (only array values
+change between them). With a contact term (``pot.contact``) the obstacles' prescribed
+motion is evaluated at ``s``, friction is lagged at the last converged state, and nodes an
+obstacle swept over are pushed out of it before the increment's Newton solve.
 """
 
 from __future__ import annotations
@@ -101,6 +101,8 @@ def solve_incremental(
     while s < 1.0:
         s_try = min(1.0, s + ds)
         p = pot if f_full is None else pot.replace(f_ext=s_try * f_full)
+        if pot.pressure is not None:  # pressures ramped like the forces
+            p = p.replace(pressure=pot.pressure.scaled(s_try))
         x_start = x
         if pot.contact is not None:  # obstacles at time s_try, friction lagged at x (time s)
             c = pot.contact.at_time(s)

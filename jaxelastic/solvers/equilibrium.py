@@ -23,6 +23,7 @@ from ..loads import Dirichlet
 from ..materials import Lame, check_lame
 from ..mechanics.checks import check_psi
 from ..mechanics.potential import Potential, is_array
+from ..mechanics.pressure import check_closed
 from ..mesh import Mesh
 from ..parallel.distributed import host_array
 from .adjoint import ImplicitAdjoint, differentiable_minimize
@@ -300,8 +301,10 @@ def solve(
             needs a concrete mesh and mask for Direct, AMG and Multilevel.
 
     Raises:
-        ValueError: (outside jit, before anything is compiled) inputs of the wrong shape, or
-            a static potential whose Dirichlet conditions leave rigid-body motions free.
+        ValueError: (outside jit, before anything is compiled) inputs of the wrong shape, a
+            static potential whose Dirichlet conditions leave rigid-body motions free, or a
+            pressure surface whose rim moves freely (not conservative:
+            :func:`~jaxelastic.mechanics.pressure.check_closed`).
 
     Returns:
         :class:`~jaxelastic.solvers.results.Solution` (``x``, ``status``, ``stats``; outside
@@ -322,6 +325,13 @@ def solve(
         return _solve_jit(pot, bc, x0, solver, adjoint, lstate)
     if not is_traced(pot, bc, x0):
         _check_constrained(pot, bc)
+        if pot.pressure is not None:  # conservative only with a closed or held rim
+            check_closed(
+                pot.pressure,
+                host_array(pot.mesh.points),
+                host_array(bc.mask),
+                host_array(bc.values),
+            )
         pot = newton_terms.refreshed(pot, x0)  # self-contact: the broad phase at x0
     t0 = time.perf_counter()
     res = jax.block_until_ready(differentiable_minimize(solver, lstate, adjoint, pot, bc, x0))

@@ -36,6 +36,7 @@ from jax.core import Tracer
 from ...loads import Dirichlet
 from ...mechanics import potential as pot_mod
 from ...mechanics.potential import Potential
+from ...mechanics.pressure import is_conservative
 from ..host.heap import release_free_memory
 from ..linear import LinearState, NewtonSystem, assemble_upper, newton_system
 from ..linear.system import operator_is_assembled
@@ -137,6 +138,8 @@ def finish(
     near = jnp.abs(jnp.sum(g * d)) <= near_tol(x.dtype) * jnp.maximum(
         escale, jnp.finfo(x.dtype).tiny
     )
+    if not is_conservative(pot.pressure):  # a follower load: no energy to decrease, so the
+        near = jnp.asarray(True)  # line search accepts a step on the residual's decrease
     floor = residual_floor(pot, system, x, fm)
     alpha, xt, et, gt, acc, cuts = line_search(s, pot, bc, x, g, state.energy, d, near, floor)
     x_new = jnp.where(acc, xt, x)

@@ -83,6 +83,8 @@ def energy_scale(pot: Potential, x, Ke):
         xKx = jnp.sum(jnp.abs(jnp.sum(Kx * xe, axis=1)))
     if pot.f_ext is not None:
         xKx = xKx + jnp.abs(jnp.sum(pot.f_ext * x))
+    if pot.pressure is not None:
+        xKx = xKx + jnp.abs(pot.pressure.energy(x))
     return xKx
 
 
@@ -92,10 +94,12 @@ def is_quadratic(pot: Potential) -> bool:
     True when ψ is marked ``psi.is_quadratic = True`` (the built-in ``linear`` material;
     mark your own quadratic ψ likewise) and the kinematics are linear in x (not F-bar,
     whose F̄ = (J̄/J)^{1/d} F is nonlinear). Inertia, damping and external forces keep Π
-    quadratic; a loop term such as contact (the log barrier) does not.
+    quadratic; a loop term such as contact (the log barrier) or a pressure (−p V, cubic in
+    3D) does not.
     """
     quadratic_psi = getattr(pot.psi, "is_quadratic", False) is True
-    return quadratic_psi and pot.mesh.formulation != "fbar" and not pot_mod.loop_terms(pot)
+    linear_kin = pot.mesh.formulation != "fbar" and pot.pressure is None
+    return quadratic_psi and linear_kin and not pot_mod.loop_terms(pot)
 
 
 def newton_rhs(s: Newton, system: NewtonSystem, g, dD, ref):
@@ -242,6 +246,8 @@ def residual_floor(pot: Potential, system: NewtonSystem, x, fm):
         total = jnp.sum(v * fm[mesh.cells].reshape(mesh.n_cells, -1))
     if pot.f_ext is not None:
         sq = sq + pot.f_ext**2
+    if pot.pressure is not None:  # the follower forces, like f_ext
+        sq = sq + pot.pressure.gradient(x) ** 2
     md = pot_mod.mass_diagonal(pot)
     if md is not None:
         ref = pot.x_tilde if pot.x_tilde is not None else x
