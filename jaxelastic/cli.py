@@ -42,6 +42,7 @@ import json
 import os
 import sys
 import time
+import warnings
 from typing import NoReturn
 
 __all__ = ["main", "command", "cache_dir"]
@@ -216,6 +217,7 @@ def _report(summary: dict, args, clock, t0: float, fit: bool = False) -> None:
             summary=summary["outputs"].get("summary"),
             wall_time=wall,
             compile_time=clock.seconds,
+            warnings=summary.get("warnings", []),
         )
         if fit:
             line.update(E=summary["result"]["E"], nu=summary["result"]["nu"])
@@ -253,7 +255,7 @@ def _run(args) -> int:
     _enable_jax(cache=not args.no_cache)
     from .scene import run_scene
     from .scene.outputs import CompileClock
-    from .solvers import SolveError
+    from .solvers import SolveError, SolveWarning
 
     t0 = time.perf_counter()
     clock = CompileClock()
@@ -262,7 +264,9 @@ def _run(args) -> int:
         out = args.out or os.path.join("jaxelastic-out", scene.name)
         if args.command == "fit" or scene.get("fit") is not None:
             return _fit(scene, out, args, t0, clock)
-        with clock:
+        with clock, warnings.catch_warnings():
+            # the summary table lists the run's warnings (a loud row each)
+            warnings.simplefilter("ignore", SolveWarning)
             summary = run_scene(scene, out, progress=not args.no_progress)
     except SceneError as e:
         print(f"jaxelastic: error: {e}", file=sys.stderr)

@@ -25,6 +25,7 @@ from .. import postprocess
 from ..io import TimeSeriesWriter, to_jsonable, write_atomic, write_json
 from ..loads import Dirichlet
 from ..mechanics.kernels import energy
+from ..mechanics.kinematics import deformation_extremes
 from ..postprocess import stress_fields
 from .errors import SceneError
 from .load import Scene
@@ -54,6 +55,9 @@ __all__ = [
     "COMPILE_EVENTS",
     "CompileClock",
     "displacement_report",
+    "deformation_report",
+    "run_warnings",
+    "LARGE_DISPLACEMENT",
     "run_table",
     "fit_table",
 ]
@@ -492,6 +496,70 @@ def displacement_report(built: Built, x) -> dict:
     )
 
 
+_extremes_jit = jax.jit(deformation_extremes)
+
+
+def deformation_report(built: Built, x) -> dict:
+    """The most deformed cells of positions ``x`` ``(n_nodes, dim)``
+    (:func:`~jaxelastic.mechanics.kinematics.deformation_extremes`): ``min_J`` (the
+    smallest det F; ≤ 0 is an inverted cell), its cell and the cell's rest centroid, and
+    ``max_strain`` (the largest principal strain max|λᵢ − 1|, 1.0 = 100 %), its cell
+    and centroid."""
+    ext = _extremes_jit(x, built.mesh)
+    X, cells = np.asarray(built.mesh.points), np.asarray(built.mesh.cells)
+    jc, sc = int(ext.min_J_cell), int(ext.max_strain_cell)
+    return dict(
+        min_J=float(ext.min_J),
+        min_J_cell=jc,
+        min_J_at=X[cells[jc]].mean(0).tolist(),
+        max_strain=float(ext.max_strain),
+        max_strain_cell=sc,
+        max_strain_at=X[cells[sc]].mean(0).tolist(),
+    )
+
+
+LARGE_DISPLACEMENT = 1.0
+"""A run whose largest nodal displacement exceeds this multiple of the rest bounding-box
+diagonal gets a warning (:func:`run_warnings`): wrong units or a missing support are the
+usual causes."""
+
+
+def run_warnings(summary: dict) -> list[str]:
+    """The warnings of a finished run (``summary["warnings"]``, printed by the CLI): an
+    inverted cell (J ≤ 0) at any step or increment of a material defined there (one
+    undefined there fails the solve instead), a displacement beyond
+    :data:`LARGE_DISPLACEMENT` times the body's diagonal, a solve stopped at the residual's
+    round-off floor above the requested tolerance."""
+    out = []
+    part = summary.get("dynamic") or summary.get("static") or {}
+    d = part.get("deformation") or {}
+    J = d.get("min_J_run", d.get("min_J"))
+    if J is not None and not J > 0:
+        when = f" at t = {_g(d['min_J_run_t'])} s" if "min_J_run_t" in d else ""
+        cell = d.get("min_J_run_cell", d.get("min_J_cell"))
+        out.append(
+            f"inverted cells: J = {_g(J, 3)} in cell {cell}{when} (the material is defined "
+            "at J <= 0, so the solve went on; a real body does not invert): check the units "
+            "of E and the density (Pa, kg/m^3), of the loads (N, Pa) and of the mesh (m), "
+            "and the load or time step size"
+        )
+    rel = part.get("max_displacement_relative")
+    if rel is not None and rel > LARGE_DISPLACEMENT:
+        out.append(
+            f"the largest displacement is {_g(100 * rel, 3)} % of the body's diagonal (above "
+            f"{_g(100 * LARGE_DISPLACEMENT)} %): check the units of E (Pa) and of the loads "
+            "and the mesh, and that the supports ([[dirichlet]], obstacles) hold the body"
+        )
+    n_floor = part.get("floor_limited_solves", 0)
+    if n_floor:
+        out.append(
+            f"{n_floor} solve(s) stopped at the residual's round-off floor above the requested "
+            f"tolerance (largest relative residual {_g(part.get('achieved_rtol_max'), 3)}): "
+            "[solver] rtol is below what float arithmetic resolves here"
+        )
+    return out
+
+
 def _g(v, digits: int = 4) -> str:
     """A number for the table: ``digits`` significant digits, no trailing zeros."""
     if v is None:
@@ -610,6 +678,35 @@ def _u_row(d: dict) -> str:
     return text
 
 
+def _relative(part: dict) -> str:
+    """The largest relative residual of the run's solves, marked where a solve stopped at
+    the round-off floor above the requested tolerance."""
+    r = part.get("achieved_rtol_max")
+    if r is None:
+        return ""
+    text = f" (relative {_g(r, 2)}"
+    n = part.get("floor_limited_solves", 0)
+    return text + (f", {n} at the round-off floor)" if n else ")")
+
+
+def _deformation_row(d: dict, t_end=None) -> str:
+    """Smallest J and largest principal strain, with their cells (and, for a dynamic run,
+    the smallest J of any step)."""
+    text = (
+        f"{_g(d['min_J'], 4)} in cell {d['min_J_cell']} at {_vec(d['min_J_at'])}; largest "
+        f"strain {_g(100 * d['max_strain'], 3)} % in cell {d['max_strain_cell']}"
+    )
+    if t_end is not None:
+        text += f"\n(at t = {_g(t_end)} s)"
+    if "min_J_run" in d:
+        cell = f" in cell {d['min_J_run_cell']}" if "min_J_run_cell" in d else ""
+        text += (
+            f"\nover the run: min J {_g(d['min_J_run'], 4)}{cell} at t = {_g(d['min_J_run_t'])} "
+            f"s, largest strain {_g(100 * d['max_strain_run'], 3)} %"
+        )
+    return text
+
+
 def _time_row(s: dict, compile_s: float | None, wall_s: float | None) -> str:
     t = s.get("timings", {})
     total = wall_s if wall_s is not None else t.get("total")
@@ -655,8 +752,12 @@ def run_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
         wall_s: wall time of the whole command [s] (default: the summary's total).
     """
     kind = "dynamic" if "dynamic" in s else "static"
+    found = s.get("warnings") or []
     head = f"{s['scene']['name']}: {s['status']} ({kind})"
-    rows = [("mesh", _mesh_row(s["mesh"])), ("material", _material_row(s))]
+    if found:
+        head += f" with {len(found)} WARNING{'S' if len(found) > 1 else ''} (below)"
+    rows = [(f"WARNING {i + 1}" if len(found) > 1 else "WARNING", w) for i, w in enumerate(found)]
+    rows += [("mesh", _mesh_row(s["mesh"])), ("material", _material_row(s))]
     rows.append(("solver", _solver_row(s)))
     if s.get("partition"):
         rows.append(("devices", _partition_row(s["partition"])))
@@ -668,11 +769,13 @@ def run_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
                 "steps",
                 f"{dy['steps']} time steps to t = {_g(dy['t_end'])} s, {settled}\n"
                 f"{dy['newton_steps_total']} Newton iterations, "
-                f"{dy['linear_iterations_total']} linear iterations",
+                f"{dy['linear_iterations_total']} linear iterations" + _relative(dy),
             )
         )
         if "max_displacement" in dy:
             rows.append(("max |u|", _u_row(dy) + f"\n(at t = {_g(dy['t_end'])} s)"))
+        if dy.get("deformation"):
+            rows.append(("min J", _deformation_row(dy["deformation"], dy.get("t_end"))))
         tip = dy["tip"]
         if tip.get("source") != "probe 0":  # else the probe row says it
             rows.append(("tip u", f"{_vec(tip['displacement'])} m at node {tip['node']}"))
@@ -704,13 +807,16 @@ def run_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
             (
                 "iterations",
                 f"{n_inc} load step{'s' if n_inc > 1 else ''}, {st['newton_steps']} Newton, "
-                f"{st['linear_iterations']} linear; final residual {_g(st['final_residual'], 2)}",
+                f"{st['linear_iterations']} linear; final residual {_g(st['final_residual'], 2)}"
+                + _relative(st),
             )
         )
         if "max_displacement_node" in st:
             rows.append(("max |u|", _u_row(st)))
         else:
             rows.append(("max |u|", f"{_g(st.get('max_displacement'))} m"))
+        if st.get("deformation"):
+            rows.append(("min J", _deformation_row(st["deformation"])))
         row = _reaction_row(st)
         if row:
             rows.append(("reaction", row))

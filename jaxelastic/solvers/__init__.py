@@ -36,6 +36,7 @@ from .newton import NewtonState as NewtonState
 from .newton import solved_potential as solved_potential
 from .results import Solution as Solution
 from .results import SolveError as SolveError
+from .results import SolveWarning as SolveWarning
 from .results import Status as Status
 
 __all__ = [
@@ -68,6 +69,7 @@ __all__ = [
     "solved_potential",
     "Solution",
     "SolveError",
+    "SolveWarning",
     "Status",
 ]
 

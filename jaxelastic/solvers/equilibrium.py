@@ -29,7 +29,7 @@ from .host import rigid_body_modes
 from .linear import LinearState, init_linear, resolve
 from .newton import Newton, is_quadratic
 from .newton import terms as newton_terms
-from .results import Solution, SolveError, Status
+from .results import Solution, SolveError, Status, warn_solution
 
 __all__ = ["solve", "PreparedSolver", "prepare_solver", "bind_solver", "is_traced"]
 
@@ -336,4 +336,5 @@ def solve(
                 f"reduces it; to solve in float64, {how})"
             )
         raise SolveError(res, what)
+    warn_solution(res)
     return res

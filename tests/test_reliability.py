@@ -1,0 +1,284 @@
+"""Never a wrong answer reported as success.
+
+Every solve reports its most deformed cells (min J, largest strain) and the tolerance it
+reached; an inverted solution of a material undefined at J <= 0 is a failure, one of a
+material defined there a warning; a tolerance below the round-off floor is reported; a
+scene summary warns about inverted cells and displacements beyond the body's size.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _common import TINY_SCENE
+
+import jaxelastic as je
+from jaxelastic import contact as C
+from jaxelastic import loads
+from jaxelastic import materials as M
+from jaxelastic.contact.log_barrier import default_dhat
+from jaxelastic.mechanics.kinematics import deformation_extremes, principal_stretch_range
+from jaxelastic.scene import SceneError, apply_overrides, build, load_scene, run_scene
+from jaxelastic.scene.outputs import LARGE_DISPLACEMENT, run_table, run_warnings
+from jaxelastic.solvers import SolveError, SolveWarning, Status
+
+P3 = M.Lame.from_E_nu(1e3, 0.3)
+
+
+@pytest.fixture(scope="module")
+def cube():
+    return je.box(2, 2, 2)
+
+
+# ---------------------------------------------------------------- min J, largest strain
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_principal_stretch_range_matches_the_singular_values(d):
+    rng = np.random.default_rng(0)
+    mats = [rng.normal(size=(d, d)) for _ in range(20)]
+    mats += [np.eye(d), 2.0 * np.eye(d), np.diag([1.0] * (d - 1) + [-1.0])]
+    mats.append(np.diag([3.0, 3.0] + [0.5] * (d - 2)))  # a repeated stretch
+    lo, hi = jax.jit(jax.vmap(principal_stretch_range))(jnp.asarray(np.stack(mats)))
+    sv = np.linalg.svd(np.stack(mats), compute_uv=False)
+    np.testing.assert_allclose(lo, sv.min(1), rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose(hi, sv.max(1), rtol=1e-7, atol=1e-7)
+
+
+def test_every_solution_reports_min_J_strain_and_the_tolerance_reached(cube):
+    """One solve with rtol below the round-off floor: min J and the largest strain with
+    their cells, the relative residual reached, and a one-time SolveWarning."""
+    bc = loads.fix(cube, cube.points[:, 0] < 1e-9)
+    f = jnp.zeros_like(cube.points).at[:, 2].set(-20.0)
+    pot = je.Potential(cube, P3, f_ext=f, psi=M.neo_hookean)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("default")  # Python's own filter: once per calling line
+        for _ in range(2):
+            sol = je.solve(pot, bc, solver=je.Newton(rtol=1e-16, linear="cg"))
+    floor = [w for w in rec if issubclass(w.category, SolveWarning)]
+    assert len(floor) == 1
+    assert "below the residual's round-off floor" in str(floor[0].message)
+    st = sol.stats
+    F = np.asarray(je.mechanics.kinematics.deformation_gradients(sol.x, cube))[:, 0]
+    J = np.linalg.det(F)
+    sv = np.linalg.svd(F, compute_uv=False)
+    strain = np.maximum(sv.max(1) - 1.0, 1.0 - sv.min(1))
+    assert float(st["min_J"]) == pytest.approx(J.min(), rel=1e-10)
+    assert int(st["min_J_cell"]) == int(np.argmin(J))
+    assert float(st["max_strain"]) == pytest.approx(strain.max(), rel=1e-8)
+    assert int(st["max_strain_cell"]) == int(np.argmax(strain))
+    assert float(st["achieved_rtol"]) == pytest.approx(
+        float(st["residual"]) / float(st["residual_reference"])
+    )
+    assert bool(st["floor_limited"])
+    assert float(st["residual"]) > float(st["tolerance"])
+    assert float(st["residual"]) <= float(st["residual_floor"])
+
+
+def _reflected(mesh):
+    """All dofs prescribed at the mirror image of the rest shape: every cell has J = -1."""
+    xr = mesh.points * jnp.array([[-1.0, 1.0, 1.0]])
+    return je.Dirichlet(mask=jnp.ones(mesh.points.shape, bool), values=xr), xr
+
+
+def _user_stvk(F, p):  # a user law that is finite (garbage) at J <= 0, not marked
+    return M.stvk(F, p)
+
+
+def test_an_inverted_solution_of_a_material_undefined_there_fails(cube):
+    bc, xr = _reflected(cube)
+    pot = je.Potential(cube, P3, psi=_user_stvk)
+    sol = je.solve(pot, bc, x0=xr, throw=False)
+    assert int(sol.status) == Status.INVERTED
+    assert float(sol.stats["min_J"]) == pytest.approx(-1.0)
+    with pytest.raises(SolveError, match=r"INVERTED: .* min J -1 in cell \d+"):
+        je.solve(pot, bc, x0=xr)
+
+
+def test_an_inverted_solution_of_a_material_defined_there_warns(cube):
+    bc, xr = _reflected(cube)
+    with pytest.warns(SolveWarning, match=r"inverted cells \(J <= 0\).*stats\['min_J'\]"):
+        sol = je.solve(je.Potential(cube, P3, psi=M.stvk), bc, x0=xr)
+    assert int(sol.status) == Status.SUCCESS
+    assert float(sol.stats["min_J"]) == pytest.approx(-1.0)
+
+
+def test_deformation_extremes_use_the_compatible_F():
+    mesh = je.box(1, 1, 1, formulation="fbar")
+    x = mesh.points.at[0].set(mesh.points[0] + jnp.array([0.0, 0.0, 2.0]))
+    F = je.mechanics.kinematics.deformation_gradients(x, mesh, fbar=False)
+    J = np.linalg.det(np.asarray(F))
+    assert float(jax.jit(deformation_extremes)(x, mesh).min_J) == pytest.approx(J.min())
+
+
+# ------------------------------------------------------------------------- scene summary
+
+
+@pytest.mark.extended
+def test_a_scene_with_absurd_displacements_warns_in_summary_and_table(tmp_path):
+    sc = apply_overrides(TINY_SCENE, {"material.model": "stable_neo_hookean", "material.E": 3.0})
+    with pytest.warns(SolveWarning, match="of the body's diagonal"):
+        s = run_scene(load_scene(sc), tmp_path, progress=False)
+    assert s["status"] == "ok"
+    (w,) = s["warnings"]
+    assert re.match(r"the largest displacement is \d+ % of the body's diagonal", w)
+    assert "units of E" in w and "supports" in w
+    d = s["static"]["deformation"]
+    assert d["min_J"] > 0 and d["max_strain"] > 1.0
+    table = run_table(s)
+    assert table.splitlines()[0] == "tiny: ok (static) with 1 WARNING (below)"
+    assert "  WARNING " in table and "min J " in table and "largest strain" in table
+
+
+def test_run_warnings_name_inverted_cells_and_the_floor():
+    s = dict(
+        dynamic=dict(
+            max_displacement_relative=0.5 * LARGE_DISPLACEMENT,
+            deformation=dict(min_J=0.5, min_J_run=-3.0, min_J_run_t=0.25, min_J_run_cell=7),
+            floor_limited_solves=2,
+            achieved_rtol_max=3.7e-8,
+        )
+    )
+    inv, floor = run_warnings(s)
+    assert inv.startswith("inverted cells: J = -3 in cell 7 at t = 0.25 s")
+    assert "units of E" in inv
+    assert floor.startswith("2 solve(s) stopped at the residual's round-off floor")
+    assert "3.7e-08" in floor
+
+
+@pytest.mark.extended
+def test_drop_with_a_wrong_unit_is_not_silently_ok(tmp_path):
+    """``jaxelastic run drop --set material.E=0.1`` (stable neo-Hookean: defined at J <= 0)."""
+    sc = load_scene("drop", overrides={"material.E": 0.1, "output.vtu": False, "output.png": False})
+    with pytest.warns(SolveWarning):
+        s = run_scene(sc, tmp_path, progress=False)
+    text = " ".join(s["warnings"])
+    assert "inverted cells" in text and "of the body's diagonal" in text
+    assert s["dynamic"]["deformation"]["min_J_run"] <= 0
+
+
+def test_the_run_table_puts_warnings_first_and_reports_min_J():
+    s = dict(
+        scene=dict(name="x"),
+        status="ok",
+        warnings=["inverted cells: J = -3 ...", "the largest displacement is 538 % ..."],
+        mesh=dict(n_cells=4, element="tet4", n_nodes=8, dim=3),
+        static=dict(
+            newton_steps=3,
+            linear_iterations=3,
+            final_residual=1e-9,
+            achieved_rtol_max=3.7e-8,
+            floor_limited_solves=1,
+            max_displacement=2.0,
+            elastic_energy=1.0,
+            deformation=dict(
+                min_J=-3.0,
+                min_J_cell=2,
+                min_J_at=[0.0, 0.0, 0.0],
+                max_strain=5.0,
+                max_strain_cell=1,
+                max_strain_at=[1.0, 0.0, 0.0],
+            ),
+        ),
+    )
+    lines = run_table(s).splitlines()
+    assert lines[0] == "x: ok (static) with 2 WARNINGS (below)"
+    assert re.match(r"  WARNING 1 +inverted cells", lines[1])
+    assert re.match(r"  WARNING 2 +the largest displacement", lines[2])
+    text = "\n".join(lines)
+    assert "final residual 1e-09 (relative 3.7e-08, 1 at the round-off floor)" in text
+    assert re.search(r"min J +-3 in cell 2 at \(0, 0, 0\); largest strain 500 % in cell 1", text)
+
+
+# ------------------------------------------------------------------ obstacles and contact
+
+
+def _contact_pot(mesh):
+    return je.Potential(mesh, M.Lame.from_E_nu(1e3, 0.3), psi=M.neo_hookean)
+
+
+GROUND = dict(point=jnp.array([0.0, 0.0, -0.1]), normal=jnp.array([0.0, 0.0, 1.0]))
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        # a sphere inside the body with no node inside it
+        (
+            lambda: C.Sphere(jnp.array([0.25, 0.25, 0.25]), jnp.asarray(0.1)),
+            r"obstacle 1 \(Sphere\) intersects the body at the rest shape: its interior "
+            r"point \(0\.25, 0\.25, 0\.25\) lies in cell",
+        ),
+        # a box poking through the top face between nodes
+        (
+            lambda: C.Box(jnp.array([0.3, 0.3, 0.9]), jnp.array([0.45, 0.45, 1.5])),
+            r"obstacle 1 \(Box\) intersects the body at the rest shape: \d+ boundary facet "
+            r"point\(s\) inside it",
+        ),
+    ],
+)
+def test_an_obstacle_intersecting_the_rest_body_is_refused(cube, make, match):
+    with pytest.raises(ValueError, match=match):
+        C.make_contact(_contact_pot(cube), [C.HalfSpace(**GROUND), make()])
+
+
+@pytest.mark.parametrize(
+    "ob, match",
+    [
+        (C.HalfSpace(**GROUND, friction=jnp.asarray(-0.5)), r"obstacle 0 \(HalfSpace\): friction"),
+        (
+            C.HalfSpace(GROUND["point"], jnp.array([0.0, 0.0, jnp.nan])),
+            r"obstacle 0 \(HalfSpace\): normal must be finite",
+        ),
+        (
+            C.HalfSpace(GROUND["point"], jnp.zeros(3)),
+            r"obstacle 0 \(HalfSpace\): normal must be a non-zero vector",
+        ),
+        (
+            C.HalfSpace(GROUND["point"], jnp.array([0.0, 0.0, 1e-200])),
+            r"normal must be a non-zero vector .* of length between 1e-100",
+        ),
+        (C.Sphere(jnp.array([0.0, 0.0, 5.0]), jnp.asarray(-1.0)), r"\(Sphere\): radius must be"),
+        (
+            C.Box(jnp.array([0.0, 0.0, 2.0]), jnp.array([1.0, 1.0, 1.5])),
+            r"\(Box\): hi must exceed lo",
+        ),
+    ],
+)
+def test_obstacle_parameters_are_checked_by_the_python_api(cube, ob, match):
+    with pytest.raises(ValueError, match=match):
+        C.make_contact(_contact_pot(cube), [ob])
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(dhat=0.0), r"dhat must be a finite number > 0 \[m\], got 0.0"),
+        (dict(dhat=float("nan")), r"dhat must be a finite number > 0"),
+        (dict(dhat=10.0), r"dhat = 10 m is more than 0.1 x the body's size"),
+        (dict(kappa=-1.0), r"kappa must be a finite number > 0 \[N/m\]"),
+    ],
+)
+def test_barrier_settings_are_named(cube, kw, match):
+    with pytest.raises(ValueError, match=match):
+        C.make_contact(_contact_pot(cube), [C.HalfSpace(**GROUND)], **kw)
+
+
+def test_the_automatic_barrier_reach_is_rotation_invariant(cube):
+    c, s = np.cos(0.7), np.sin(0.7)
+    R = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    X = cube.points
+    assert float(default_dhat(X @ R.T)) == pytest.approx(float(default_dhat(X)), rel=1e-12)
+    # the unrotated block keeps the bounding-box diagonal it had
+    assert float(default_dhat(X, 1.0)) == pytest.approx(np.sqrt(3.0), rel=1e-12)
+
+
+def test_a_scene_obstacle_inside_the_body_is_named_by_its_key():
+    sc = dict(TINY_SCENE, obstacle=[{"sphere": {"center": [1.0, 0.5], "radius": 0.1}}])
+    with pytest.raises(SceneError, match=r"\[\[obstacle\]\]\[0\] \(Sphere\) intersects the body"):
+        build(load_scene(sc))
