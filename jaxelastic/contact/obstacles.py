@@ -297,7 +297,11 @@ def check_obstacle(ob, name: str = "obstacle") -> None:
     if isinstance(ob, HalfSpace):
         n = _concrete(ob.normal)
         length = None if n is None else float(np.sqrt(np.sum(n * n)))
-        if length is not None and not NORMAL_LENGTHS[0] <= length <= NORMAL_LENGTHS[1]:
+        if (
+            n is not None
+            and length is not None
+            and not (NORMAL_LENGTHS[0] <= length <= NORMAL_LENGTHS[1])
+        ):
             raise ValueError(
                 f"{name} ({kind}): normal must be a non-zero vector pointing into the free "
                 f"side, of length between {NORMAL_LENGTHS[0]:g} and {NORMAL_LENGTHS[1]:g} "

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 
 from ..mechanics.potential import Potential, elastic_element_hessians, node_hessian_blocks
 from ..mesh import boundary_facets, boundary_nodes
@@ -162,18 +163,18 @@ def check_barrier(points, dhat, kappa) -> None:
     for name, v, unit in (("dhat", dhat, "m"), ("kappa", kappa, "N/m")):
         if v is None:
             continue
+        if isinstance(v, Tracer):
+            continue  # traced: not checked
         try:
             f = float(v)
         except (TypeError, ValueError):
             raise ValueError(f"{name} must be a number [{unit}], got {v!r}") from None
-        except jax.errors.ConcretizationTypeError:
-            continue  # traced: not checked
         if not (np.isfinite(f) and f > 0):
             raise ValueError(
                 f"{name} must be a finite number > 0 [{unit}], got {v!r}; leave it out for "
                 "the automatic value"
             )
-    if dhat is not None and float(dhat) > DHAT_MAX_REL * size:
+    if dhat is not None and not isinstance(dhat, Tracer) and float(dhat) > DHAT_MAX_REL * size:
         raise ValueError(
             f"dhat = {float(dhat):.3g} m is more than {DHAT_MAX_REL:g} x the body's size "
             f"({size:.3g} m): the barrier would act across the body. The barrier reach is a "
