@@ -23,6 +23,7 @@ from jaxelastic import loads
 from jaxelastic import materials as M
 from jaxelastic.contact.log_barrier import default_dhat
 from jaxelastic.mechanics.kinematics import deformation_extremes, principal_stretch_range
+from jaxelastic.mesh import MeshError
 from jaxelastic.scene import SceneError, apply_overrides, build, load_scene, run_scene
 from jaxelastic.scene.outputs import LARGE_DISPLACEMENT, run_table, run_warnings
 from jaxelastic.solvers import SolveError, SolveWarning, Status
@@ -282,3 +283,107 @@ def test_a_scene_obstacle_inside_the_body_is_named_by_its_key():
     sc = dict(TINY_SCENE, obstacle=[{"sphere": {"center": [1.0, 0.5], "radius": 0.1}}])
     with pytest.raises(SceneError, match=r"\[\[obstacle\]\]\[0\] \(Sphere\) intersects the body"):
         build(load_scene(sc))
+
+
+# ------------------------------------------------------------------------------- meshes
+
+
+def _box_arrays():
+    m = je.box(2, 2, 2)
+    return np.asarray(m.points).copy(), np.asarray(m.cells)
+
+
+def test_a_tangled_mesh_is_refused_not_reoriented():
+    X, C = _box_arrays()
+    X[13] = [1.5, 0.5, 0.5]  # the centre node pulled out through a face: cells fold over
+    with (
+        pytest.warns(UserWarning, match="reoriented"),
+        pytest.raises(
+            MeshError, match=r"the mesh is tangled: \d+ interior facet\(s\) have both their cells"
+        ),
+    ):
+        je.from_arrays(X, C)
+    m = je.rectangle(3, 3)
+    X2 = np.asarray(m.points).copy()
+    X2[5] += [0.9, 0.0]
+    with pytest.warns(UserWarning), pytest.raises(MeshError, match="the mesh is tangled"):
+        je.from_arrays(X2, np.asarray(m.cells))
+
+
+def test_a_mesh_that_merely_has_clockwise_cells_is_still_reoriented():
+    X, C = _box_arrays()
+    flipped = C.copy()
+    flipped[::2] = flipped[::2][:, [0, 2, 1, 3]]
+    with pytest.warns(UserWarning, match="reoriented 24 of 48"):
+        m = je.from_arrays(X, flipped)
+    assert np.all(np.asarray(m.volumes) > 0)
+
+
+def _split_mesh():
+    """Two unit cubes side by side whose shared face has duplicated nodes."""
+    X, C = _box_arrays()
+    P = np.concatenate([X, X + np.array([[1.0, 0.0, 0.0]])])
+    with pytest.warns(UserWarning, match=r"18 nodes share their rest position .* split"):
+        return je.from_arrays(P, np.concatenate([C, C + len(X)]))
+
+
+def test_duplicated_nodes_warn_and_a_free_part_is_refused():
+    mesh = _split_mesh()
+    assert je.mesh.connected_parts(mesh)[0] == 2
+    bc = loads.fix(mesh, np.asarray(mesh.points)[:, 0] < 1e-9)  # holds the left cube only
+    pot = je.Potential(mesh, P3, psi=M.neo_hookean)
+    with pytest.raises(ValueError, match=r"2 parts that no cell connects.* part 1 \(27 nodes"):
+        je.solve(pot, bc)
+
+
+def test_unreferenced_nodes_are_refused():
+    X, C = _box_arrays()
+    with pytest.raises(MeshError, match=r"1 node\(s\) belong to no cell"):
+        je.from_arrays(np.concatenate([X, [[5.0, 5.0, 5.0]]]), C)
+
+
+def _interior_facets(mesh, k=2):
+    cells = np.asarray(mesh.cells)
+    local = np.asarray(mesh.element_type.facet_nodes)[:, : mesh.dim]
+    allf = np.sort(cells[:, local].reshape(-1, mesh.dim), axis=1)
+    keys, counts = np.unique(allf, axis=0, return_counts=True)
+    return keys[counts == 2][:k]
+
+
+def test_loads_on_interior_facets_are_refused(cube):
+    inner = _interior_facets(cube)
+    facets = np.concatenate([je.mesh.boundary_facets(cube)[:3], inner])
+    with pytest.raises(ValueError, match=r"traction_load: 2 of 5 facet\(s\) are interior"):
+        loads.traction_load(cube, facets, [0.0, 0.0, 1.0])
+    with pytest.raises(ValueError, match=r"facet_tractions: 2 of 5 facet\(s\) are interior"):
+        je.postprocess.facet_tractions(M.neo_hookean, cube.points, cube, P3, facets)
+
+
+def test_facet_tractions_do_not_depend_on_the_facets_node_order(cube):
+    """A uniaxial stretch: τ = P·N on the pulled face, whatever the order of its nodes."""
+    x = cube.points * jnp.array([[1.1, 1.0, 1.0]])
+    top = loads.facets_where(cube, lambda X: X[:, 0] > 1.0 - 1e-9)
+    t1 = je.postprocess.facet_tractions(M.neo_hookean, x, cube, P3, top)
+    t2 = je.postprocess.facet_tractions(M.neo_hookean, x, cube, P3, top[:, ::-1])
+    np.testing.assert_allclose(t2, t1, rtol=1e-12)
+    assert np.all(t1[:, 0] > 0)  # tension: the traction points out of the body
+
+
+# ---------------------------------------------------------------- Dirichlet data, names
+
+
+def test_fix_refuses_a_displacement_in_the_components_slot(cube):
+    with pytest.raises(
+        TypeError,
+        match=r"components must be integer axis indices .* "
+        r"displacement=\[0.4, 0, 0\]",
+    ):
+        loads.fix(cube, [0, 1], [0.4, 0, 0])
+    bc = loads.fix(cube, [0], (0, 2))
+    assert np.asarray(bc.mask)[0].tolist() == [True, False, True]
+
+
+@pytest.mark.parametrize("name", ["../../x", "/tmp/x", ".hidden", "a\\b", "", "c:x"])
+def test_a_scene_name_is_a_name_not_a_path(name):
+    with pytest.raises(SceneError, match=r"name must be a name, not a path"):
+        load_scene(dict(TINY_SCENE, name=name))

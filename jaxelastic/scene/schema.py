@@ -1035,10 +1035,37 @@ class FitSpec(Table):
 # ----------------------------------------------------------------------------------------
 
 
+def _scene_name(v: str) -> str:
+    """A scene name is a name: it becomes the output directory ``jaxelastic-out/<name>``
+    without ``--out``, so no path separator, no ``.``/``..``, no leading dot or ``~``, no
+    control characters, at most 100 characters."""
+    bad = (
+        not v.strip()
+        or len(v) > 100
+        or any(c in v for c in "/\\:")
+        or v.startswith((".", "~"))
+        or any(ord(c) < 32 or ord(c) == 127 for c in v)
+    )
+    if bad:
+        raise fail(
+            f"{{at}} must be a name, not a path: 1 to 100 characters without '/', '\\', ':', "
+            f"control characters or a leading '.' or '~', got {v!r} (it names the output "
+            "directory jaxelastic-out/<name>; use --out to write elsewhere)"
+        )
+    return v
+
+
+SceneName = Annotated[str, Strict(), AfterValidator(_scene_name)]
+"""The scene's ``name``: a file name (:func:`_scene_name`)."""
+
+
 class SceneSpec(Table):
     """A jaxelastic scene file."""
 
-    name: Str = Field(default="scene", description="label (output directory name, plot titles)")
+    name: SceneName = Field(
+        default="scene",
+        description="label (output directory name, plot titles): a name, not a path",
+    )
     description: Str = Field(default="", description="one line shown by `jaxelastic scenes`")
     mesh: MeshSpec = Field(description="the mesh")
     material: MaterialSpec = Field(description="the material")
