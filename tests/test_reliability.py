@@ -387,3 +387,75 @@ def test_fix_refuses_a_displacement_in_the_components_slot(cube):
 def test_a_scene_name_is_a_name_not_a_path(name):
     with pytest.raises(SceneError, match=r"name must be a name, not a path"):
         load_scene(dict(TINY_SCENE, name=name))
+
+
+# ------------------------------------------------- one validation per material, API and scene
+
+BAD_FAMILIES = [
+    (M.arruda_boyce, dict(lambda_m=0.8), "arruda_boyce", r"lambda_m .*must be > 1"),
+    (M.gent, dict(Jm=-1.0), "gent", r"Jm .*must be >= 0.01"),
+    (M.gent, dict(Jm=1e-6), "gent", r"Jm .*must be >= 0.01"),
+    (M.ogden, dict(alpha1=0.0), "ogden", r"alpha1 must be nonzero"),
+    (M.ogden, dict(mu1=-0.618), "ogden", r"mu1 must have the sign of alpha1"),
+    (M.mooney_rivlin, dict(c01=-0.2), "mooney_rivlin", r"c01 must exceed -c10"),
+    (M.yeoh, dict(kappa=-1.0), "yeoh", r"kappa \(the bulk modulus\) must be > 0"),
+    (M.holzapfel_gasser_ogden, dict(k2=0.0), "holzapfel_gasser_ogden", r"k2 must be > 0"),
+    (
+        M.holzapfel_gasser_ogden,
+        dict(a01=jnp.array([1e-12, 0.0, 0.0])),
+        "holzapfel_gasser_ogden",
+        r"a01 \(a fibre direction\) must have length",
+    ),
+]
+
+
+@pytest.mark.parametrize("psi, change, model, match", BAD_FAMILIES, ids=lambda v: str(v)[:20])
+def test_unstable_family_constants_are_refused_by_the_python_api(cube, psi, change, model, match):
+    params = M.FAMILY_PARAMS[model](**change)
+    with pytest.raises(M.MaterialParameterError, match=f"{model}: {match}"):
+        M.check_material(params, 3)
+    bc = loads.fix(cube, cube.points[:, 0] < 1e-9)
+    with pytest.raises(M.MaterialParameterError, match=match):
+        je.solve(je.Potential(cube, params, psi=psi), bc)
+
+
+@pytest.mark.parametrize(
+    "material, match",
+    [
+        (
+            {"model": "arruda_boyce", "mu": 0.26, "lambda_m": 0.8, "kappa": 260.0},
+            r"\[material\]\.lambda_m \(the locking stretch sqrt\(N\)\) must be > 1",
+        ),
+        (
+            {"model": "gent", "mu": 0.26, "Jm": 1e-6, "kappa": 260.0},
+            r"\[material\]\.Jm .*must be >= 0.01",
+        ),
+        (
+            {
+                "model": "ogden",
+                **dict(mu1=0.6, mu2=0.001, mu3=-0.01, alpha1=0.0, alpha2=5.0, alpha3=-2.0),
+                "kappa": 400.0,
+            },
+            r"\[material\]\.alpha1 must be nonzero",
+        ),
+    ],
+)
+def test_the_scene_schema_uses_the_same_validation(material, match):
+    with pytest.raises(SceneError, match=match):
+        load_scene(dict(TINY_SCENE, material=material))
+
+
+def test_the_documented_hgo_parameters_make_a_potential(cube):
+    params = M.holzapfel_gasser_ogden_params()  # shared (3,) fibre directions
+    pot = je.Potential(cube, params, psi=M.holzapfel_gasser_ogden)  # refused before
+    assert pot.params.a01.shape == (cube.n_cells, 3)
+    np.testing.assert_allclose(pot.params.a02[5], params.a02)
+
+
+@pytest.mark.extended
+def test_the_documented_hgo_parameters_work_in_a_solve(cube):
+    bc = loads.fix(cube, cube.points[:, 0] < 1e-9)
+    f = jnp.zeros_like(cube.points).at[:, 0].set(0.1)
+    params = M.holzapfel_gasser_ogden_params()
+    sol = je.solve(je.Potential(cube, params, f_ext=f, psi=M.holzapfel_gasser_ogden), bc)
+    assert bool(sol.ok) and float(sol.stats["min_J"]) > 0

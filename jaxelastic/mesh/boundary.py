@@ -69,7 +69,7 @@ def facet_owners(mesh: Mesh, facets, where: str = "facets") -> np.ndarray:
     if not found.all():
         i = int(np.flatnonzero(~found)[0])
         raise ValueError(
-            f"{where}: {int((~found).sum())} of {len(q)} facet(s) are not facets of any cell "
+            f"{where}: {int((~found).sum())} of {len(q)} row(s) are not a facet of any cell "
             f"(first: row {i}, nodes {facets[i].tolist()})"
         )
     inner = counts[pos] > 1

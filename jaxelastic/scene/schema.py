@@ -36,7 +36,15 @@ from pydantic import (
     model_validator,
 )
 
-from ..materials import BUILTIN, FAMILIES, FAMILY_KEYS, FAMILY_POSITIVE_KEYS, MODEL_NAMES
+from ..materials import (
+    BUILTIN,
+    FAMILIES,
+    FAMILY_KEYS,
+    FAMILY_POSITIVE_KEYS,
+    MODEL_NAMES,
+    MaterialParameterError,
+    check_family,
+)
 from ..mesh import FORMULATIONS
 from .callables import CallableSpecError, import_callable, n_positional
 from .errors import SceneError, fail, from_validation_error, type_name
@@ -518,6 +526,10 @@ class MaterialSpec(Table):
                 raise fail(f"{{at}}.{k} must be > 0, got {v!r}")
             if k in ("a01", "a02") and _is_vector(v) and (len(v) not in (2, 3) or not any(v)):
                 raise fail(f"{{at}}.{k} must be a nonzero vector of 2 or 3 numbers, got {list(v)}")
+        try:  # the one validation of the family's constants (also used by je.solve)
+            check_family(self.model, {k: getattr(self, k) for k in keys})
+        except MaterialParameterError as e:
+            raise fail(f"{{at}}.{e.key} {e.reason}") from None
         if self.k1 is not None and self.k1 < 0:
             raise fail(f"{{at}}.k1 must be >= 0, got {self.k1!r}")
         kd = self.kappa_dispersion

@@ -19,7 +19,7 @@ import numpy as np
 from jax.core import Tracer
 
 from ..loads import Dirichlet
-from ..materials import Lame, check_lame
+from ..materials import check_material
 from ..mechanics.checks import check_psi
 from ..mechanics.potential import Potential, is_array
 from ..mesh import Mesh, connected_parts
@@ -175,8 +175,7 @@ def _check_inputs(pot: Potential, bc: Dirichlet, x0):
             f"the mesh (je.loads.fix) or cast the values to {dt}"
         )
     if not is_traced(pot.params):
-        if isinstance(pot.params, Lame):
-            check_lame(pot.params, int(shape[1]))
+        check_material(pot.params, int(shape[1]))
         mesh = pot.mesh
         check_psi(
             pot.psi, int(shape[1]), mesh.points.dtype, pot.params, mesh.n_cells, where="je.solve"
