@@ -9,17 +9,19 @@ scene summary warns about inverted cells and displacements beyond the body's siz
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _common import TINY_SCENE
+from _common import TINY_SCENE, scene_toml
 
 import jaxelastic as je
+from jaxelastic import cli, loads
 from jaxelastic import contact as C
-from jaxelastic import loads
 from jaxelastic import materials as M
 from jaxelastic.contact.log_barrier import default_dhat
 from jaxelastic.mechanics.kinematics import deformation_extremes, principal_stretch_range
@@ -143,13 +145,16 @@ def test_run_warnings_name_inverted_cells_and_the_floor():
             deformation=dict(min_J=0.5, min_J_run=-3.0, min_J_run_t=0.25, min_J_run_cell=7),
             floor_limited_solves=2,
             achieved_rtol_max=3.7e-8,
-        )
+        ),
+        solver=dict(rtol=1e-12),
     )
     inv, floor = run_warnings(s)
     assert inv.startswith("inverted cells: J = -3 in cell 7 at t = 0.25 s")
     assert "units of E" in inv
     assert floor.startswith("2 solve(s) stopped at the residual's round-off floor")
     assert "3.7e-08" in floor
+    s["solver"]["rtol"] = 1e-8  # within FLOOR_WARNING of the request: the table says it
+    assert len(run_warnings(s)) == 1
 
 
 @pytest.mark.extended
@@ -459,3 +464,106 @@ def test_the_documented_hgo_parameters_work_in_a_solve(cube):
     params = M.holzapfel_gasser_ogden_params()
     sol = je.solve(je.Potential(cube, params, f_ext=f, psi=M.holzapfel_gasser_ogden), bc)
     assert bool(sol.ok) and float(sol.stats["min_J"]) > 0
+
+
+# ------------------------------------------------------------------- command line, signals
+
+
+def _python(code: str):
+    """``python -c code`` with captured output."""
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+
+
+def test_a_broken_toml_value_in_set_names_the_toml_error(capsys):
+    assert cli.main(["run", "default", "--set", 'material={model="x"']) == 2
+    err = capsys.readouterr().err
+    assert "--set material: invalid TOML value '{model=\"x\"'" in err
+    assert "Unclosed inline table" in err or "inline table" in err
+
+
+def test_deeply_nested_toml_is_a_scene_error(tmp_path, capsys):
+    p = tmp_path / "deep.toml"
+    p.write_text('name = "x"\nmesh = ' + "[" * 5000 + "]" * 5000 + "\n")
+    assert cli.main(["run", str(p), "--out", str(tmp_path / "out")]) == 2
+    assert "nested too deeply" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_refused_scene_leaves_no_empty_output_directory(tmp_path, capsys):
+    sc = dict(TINY_SCENE, obstacle=[{"sphere": {"center": [1.0, 0.5], "radius": 0.1}}])
+    p = tmp_path / "s.toml"
+    p.write_text(scene_toml(sc))
+    out = tmp_path / "new" / "out"
+    assert cli.main(["run", str(p), "--out", str(out), "--no-progress"]) == 2
+    assert "intersects the body" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "sets, match",
+    [
+        (["integrator.h=1e-320", "integrator.duration=1e-320"], r"\[integrator\]\.h = 1e-320 s"),
+        (
+            ["integrator.initial_velocity=[1e200, 0.0]", "integrator.duration=0.05"],
+            r"\[integrator\]\.initial_velocity: a speed of 1e\+200 m/s",
+        ),
+    ],
+)
+def test_absurd_time_steps_and_velocities_name_the_key(tmp_path, capsys, sets, match):
+    args = ["run", "swing2d", "--out", str(tmp_path / "o"), "--no-progress"]
+    for s in sets:
+        args += ["--set", s]
+    assert cli.main(args) == 2
+    assert re.search(match, capsys.readouterr().err)
+
+
+@pytest.mark.extended
+def test_a_closed_stdout_ends_quietly():
+    p = subprocess.Popen(
+        [sys.executable, "-c", "from jaxelastic.cli import command; import sys; "
+         "sys.argv[1:] = ['schema']; command()"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert p.stdout is not None and p.stderr is not None
+    p.stdout.readline()
+    p.stdout.close()  # like `| head -1`
+    err = p.stderr.read()
+    assert p.wait(timeout=120) == 0
+    assert "Traceback" not in err and "BrokenPipe" not in err
+
+
+SIGNAL_AT_START = """
+import os, signal, sys, time
+from jaxelastic import cli
+def early(argv=None):
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(5)
+    raise SystemExit("the signal was not handled")
+cli._main = early
+sys.exit(cli.main(["run", "default"]))
+"""
+
+SIGNAL_AT_EXIT = """
+import atexit, os, signal, sys, time
+from jaxelastic import cli
+def bye():
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(0.2)
+atexit.register(bye)
+cli.main = lambda argv=None: 0
+cli.command()
+"""
+
+
+@pytest.mark.extended
+def test_sigterm_from_the_start_of_the_command_is_one_line_and_130():
+    r = _python(SIGNAL_AT_START)
+    assert r.returncode == 130
+    assert "interrupted by SIGTERM" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.extended
+def test_a_signal_during_the_exit_handlers_prints_no_traceback():
+    r = _python(SIGNAL_AT_EXIT)
+    assert r.returncode == 0
+    assert "Traceback" not in r.stderr

@@ -66,6 +66,10 @@ def make_contact(
 ) -> Contact:
     """A :class:`Contact` of ``pot``'s body with ``obstacles``.
 
+    Long because: the checks of every input come first, then the term is built in the
+    order its parts depend on each other (d̂ and κ, self-contact, friction); split, the
+    order would be spread over helpers.
+
     Args:
         pot: the potential (its mesh, material and masses set κ).
         obstacles: obstacles (:mod:`~jaxelastic.contact.obstacles`); at least one unless

@@ -153,6 +153,9 @@ def check_family(model: str, values: Mapping) -> None:
     one validation of :data:`FAMILIES`' parameters, used by :func:`check_material` (the
     Python API: ``je.solve``) and by the scene schema (``[material]``).
 
+    Long because: the conditions of the six families side by side, each a few lines, read
+    and review best as one table.
+
     Checks, each naming the parameter: every value finite; a positive initial shear and
     bulk modulus at F = I; and each family's own conditions — Mooney–Rivlin c10 > 0 and
     c10 + c01 > 0; Yeoh c10 > 0; Ogden αₚ ≠ 0 and μₚαₚ ≥ 0 for every term (Ogden 1972's

@@ -58,6 +58,7 @@ __all__ = [
     "deformation_report",
     "run_warnings",
     "LARGE_DISPLACEMENT",
+    "FLOOR_WARNING",
     "run_table",
     "fit_table",
 ]
@@ -524,12 +525,18 @@ diagonal gets a warning (:func:`run_warnings`): wrong units or a missing support
 usual causes."""
 
 
+FLOOR_WARNING = 10.0
+"""A run whose solves stopped at the round-off floor warns once the relative residual
+reached exceeds this multiple of the requested ``[solver] rtol`` (closer, the table's
+``relative`` figure says it)."""
+
+
 def run_warnings(summary: dict) -> list[str]:
     """The warnings of a finished run (``summary["warnings"]``, printed by the CLI): an
     inverted cell (J ≤ 0) at any step or increment of a material defined there (one
     undefined there fails the solve instead), a displacement beyond
-    :data:`LARGE_DISPLACEMENT` times the body's diagonal, a solve stopped at the residual's
-    round-off floor above the requested tolerance."""
+    :data:`LARGE_DISPLACEMENT` times the body's diagonal, solves stopped at the residual's
+    round-off floor more than :data:`FLOOR_WARNING` times above the requested rtol."""
     out = []
     part = summary.get("dynamic") or summary.get("static") or {}
     d = part.get("deformation") or {}
@@ -551,7 +558,9 @@ def run_warnings(summary: dict) -> list[str]:
             "and the mesh, and that the supports ([[dirichlet]], obstacles) hold the body"
         )
     n_floor = part.get("floor_limited_solves", 0)
-    if n_floor:
+    rtol = (summary.get("solver") or {}).get("rtol", 0.0) or 0.0
+    worst = part.get("achieved_rtol_max") or 0.0
+    if n_floor and worst > FLOOR_WARNING * rtol:
         out.append(
             f"{n_floor} solve(s) stopped at the residual's round-off floor above the requested "
             f"tolerance (largest relative residual {_g(part.get('achieved_rtol_max'), 3)}): "
@@ -745,6 +754,8 @@ def run_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
     """The summary of a run for people: an aligned table of the mesh, material, solver,
     iterations, largest displacement, reaction vs applied load, energy, time (compile and
     run when ``compile_s`` is known) and the files written.
+
+    Long because: one table built row by row in the order it is printed.
 
     Args:
         s: the run's summary (as :func:`~jaxelastic.scene.run.run_scene` returns it).

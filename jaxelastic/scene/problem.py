@@ -724,7 +724,30 @@ def _initial_velocity(scene: Scene, X: np.ndarray, bc: Dirichlet, dtype) -> jax.
             )
     else:
         v0 = np.broadcast_to(np.asarray(iv, dtype=float), X.shape).copy()
-    return jnp.asarray(np.where(np.asarray(bc.mask), 0.0, v0), dtype)
+    v0 = np.where(np.asarray(bc.mask), 0.0, v0)
+    _check_speed(scene, key, X, v0)
+    return jnp.asarray(v0, dtype)
+
+
+SPEED_MAX_BODIES = 1e6
+"""An initial velocity that would carry a node this many body sizes in the scene's
+duration is refused (it overflows the energies long before; wrong units are the usual
+cause)."""
+
+
+def _check_speed(scene: Scene, key: str, X: np.ndarray, v0: np.ndarray) -> None:
+    """Refuse an initial velocity whose kinetic energy overflows or that would move a node
+    by more than :data:`SPEED_MAX_BODIES` body sizes within the duration, naming the key."""
+    size = float(np.linalg.norm(np.ptp(X, axis=0))) or 1.0
+    duration = float(getattr(scene.spec.integrator, "duration", 0.0) or 0.0)
+    speed = float(np.max(np.hypot.reduce(v0, axis=1), initial=0.0))  # (no overflow)
+    if not np.isfinite(speed) or speed * duration > SPEED_MAX_BODIES * size:
+        raise scene.error(
+            f"{key}: a speed of {speed:.3g} m/s would carry the body {speed * duration:.3g} m "
+            f"in the {duration:g} s of the run, more than {SPEED_MAX_BODIES:.0e} times its "
+            f"size ({size:.3g} m; its kinetic energy overflows float64 before): check the "
+            "units (m/s)"
+        )
 
 
 def _tip_node(mesh: Mesh, bc: Dirichlet) -> int:

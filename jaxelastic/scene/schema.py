@@ -36,6 +36,7 @@ from pydantic import (
     model_validator,
 )
 
+from ..dynamics import H_MIN
 from ..materials import (
     BUILTIN,
     FAMILIES,
@@ -878,6 +879,11 @@ class DynamicIntegrator(Table):
 
     @model_validator(mode="after")
     def _duration(self):
+        if self.h < H_MIN:
+            raise fail(
+                f"{{at}}.h = {self.h!r} s is below {H_MIN:g} s: the inertia term m/h^2 "
+                "overflows float64"
+            )
         if self.duration < self.h * (1 - 1e-12):
             raise fail(f"{{at}}.duration must be >= h = {self.h!r}, got {self.duration!r}")
         steps = self.duration / self.h

@@ -16,7 +16,15 @@ from . import terms
 from .iteration import min_J, norm, status_of, value_and_grad
 from .settings import Newton
 
-__all__ = ["NewtonState", "init", "terminate", "solution", "body_length", "defined_inverted"]
+__all__ = [
+    "NewtonState",
+    "init",
+    "terminate",
+    "solution",
+    "body_length",
+    "defined_inverted",
+    "FLOOR_REFERENCE",
+]
 
 
 class NewtonState(NamedTuple):
@@ -96,6 +104,12 @@ def body_length(pot: Potential) -> jax.Array:
     return jnp.sqrt(jnp.sum((jnp.max(X, axis=0) - jnp.min(X, axis=0)) ** 2))
 
 
+FLOOR_REFERENCE = 100.0
+"""``stats["floor_limited"]`` is only set where the residual's reference force exceeds
+this multiple of the round-off floor: below it the solve had nothing to resolve (an
+unloaded or freely moving body), and no relative tolerance was meaningful."""
+
+
 def defined_inverted(psi) -> bool:
     """Whether ψ is marked finite and meaningful at J ≤ 0 (``psi.defined_inverted = True``:
     the built-in linear, StVK, corotated, fixed corotated, ARAP and stable neo-Hookean
@@ -145,6 +159,8 @@ def solution(pot: Potential, state: NewtonState, s: Newton | None = None) -> Sol
     if s is not None:
         tol = jnp.maximum(jnp.asarray(s.atol, res.dtype), s.rtol * state.ref)
         stats["tolerance"] = tol
-        stats["floor_limited"] = (status == Status.SUCCESS) & (res > tol)
+        # (a reference force itself near round-off, e.g. an unloaded body, asks nothing)
+        meaningful = state.ref > FLOOR_REFERENCE * state.floor
+        stats["floor_limited"] = (status == Status.SUCCESS) & (res > tol) & meaningful
     stats.update(terms.stats(pot, state.terms))
     return Solution(x=state.x, status=status, stats=stats)
