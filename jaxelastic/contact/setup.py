@@ -68,7 +68,7 @@ def make_contact(
 
     Long because: the checks of every input come first, then the term is built in the
     order its parts depend on each other (d̂ and κ, self-contact, friction); split, the
-    order would be spread over helpers.
+    order would be spread over several functions.
 
     Args:
         pot: the potential (its mesh, material and masses set κ).

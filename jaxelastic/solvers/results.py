@@ -185,7 +185,7 @@ _WARNING_TEXT = {
 
 
 def warn_solution(sol: Solution, what: str = "je.solve", stacklevel: int = 3) -> None:
-    """Issue a :class:`SolveWarning` for each of :func:`solution_warnings` (fixed texts, so
+    """Emit a :class:`SolveWarning` for each of :func:`solution_warnings` (fixed texts, so
     Python shows each once per calling line; the numbers are in ``sol.stats``)."""
     import warnings
 
