@@ -567,3 +567,50 @@ def test_a_signal_during_the_exit_handlers_prints_no_traceback():
     r = _python(SIGNAL_AT_EXIT)
     assert r.returncode == 0
     assert "Traceback" not in r.stderr
+
+
+# ------------------------------------------------------------------ outputs that do not mislead
+
+PULL = dict(
+    TINY_SCENE,
+    name="pull",
+    traction=[],
+    dirichlet=[
+        {"nodes": {"plane": {"axis": "x", "value": 0.0}}},
+        {"nodes": {"plane": {"axis": "x", "value": 2.0}}, "displacement": [0.1, 0.0]},
+    ],
+)
+
+
+@pytest.mark.extended
+def test_a_tensile_test_reports_the_force_on_each_support(tmp_path):
+    s = run_scene(load_scene(PULL), tmp_path, progress=False)
+    per = s["static"]["reactions"]
+    assert [e["key"] for e in per] == ["[dirichlet][0]", "[dirichlet][1]"]
+    f0, f1 = per[0]["reaction_force"][0], per[1]["reaction_force"][0]
+    assert f1 > 1.0 and f0 == pytest.approx(-f1, rel=1e-9)  # the machine reads f1
+    table = run_table(s)
+    assert re.search(r"\[dirichlet\]\[1\] \(6 dofs\): \(56\.\d+, ", table)
+    vtu = next(tmp_path.glob("static_*.vtu")).read_text(errors="ignore")
+    assert 'compressor="vtkZLibDataCompressor"' in vtu
+
+
+def test_the_reaction_row_lists_each_support_and_hides_round_off():
+    r = dict(
+        reaction_force=[-6e-14, 2e-14],
+        total_applied_load=[0.0, 0.0],
+        reactions=[
+            dict(key="[dirichlet][0]", dofs=6, reaction_force=[-56.0, 1.0]),
+            dict(key="[dirichlet][1]", dofs=6, reaction_force=[56.0, -1.0]),
+        ],
+    )
+    s = dict(
+        scene=dict(name="pull"),
+        status="ok",
+        mesh=dict(n_cells=16, element="tri3", n_nodes=15, dim=2),
+        static=dict(newton_steps=3, linear_iterations=3, final_residual=1e-11,
+                    max_displacement=0.1, elastic_energy=1.0, **r),
+    )  # fmt: skip
+    text = run_table(s)
+    assert "0 N in total" in text and "e-14" not in text
+    assert "[dirichlet][1] (6 dofs): (56, -1) N" in text

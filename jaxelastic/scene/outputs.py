@@ -42,6 +42,7 @@ __all__ = [
     "remove_stale",
     "save_png",
     "save_npz",
+    "vtu_compression",
     "write_summary",
     "elastic_energy",
     "probe_report",
@@ -232,11 +233,21 @@ def probe_report(built: Built, x) -> list:
 
 
 def reaction_report(built: Built, x, bc: Dirichlet) -> dict:
-    """Reaction force of the supports ``(dim,)`` and the total applied load."""
+    """Reaction force of the supports ``(dim,)``, the total applied load, and the reaction
+    of each ``[[dirichlet]]`` entry (``reactions``: key, prescribed dofs, force ``(dim,)``
+    [N]: what a testing machine reads on that support; dofs two entries share count in
+    both)."""
     pot = built.potential
     r = _reaction_jit(built.psi, x, built.mesh, built.params, bc, pot.f_ext)
     total = np.zeros(built.mesh.dim) if pot.f_ext is None else np.asarray(pot.f_ext).sum(0)
-    return dict(reaction_force=np.asarray(r).tolist(), total_applied_load=total.tolist())
+    per = []
+    for key, mask in built.supports:
+        part = Dirichlet(mask=jax.numpy.asarray(mask), values=bc.values)
+        rk = _reaction_jit(built.psi, x, built.mesh, built.params, part, pot.f_ext)
+        per.append(dict(key=key, dofs=int(mask.sum()), reaction_force=np.asarray(rk).tolist()))
+    return dict(
+        reaction_force=np.asarray(r).tolist(), total_applied_load=total.tolist(), reactions=per
+    )
 
 
 def _material_constants(params) -> dict:
@@ -302,12 +313,21 @@ def vtu_plane(built: Built) -> str:
     return getattr(built.scene.spec.material, "plane", None) or "strain"
 
 
-VTU_COMPRESSION: str | None = None
-"""The compression of the VTU files of a run (:func:`jaxelastic.io.write_vtu`): none. Twist
-at n = 29 (146k tet4 cells, 27k nodes, float64 stress fields): 0.13 s and 61 MB per file
-uncompressed vs 0.81 s and 39 MB with zlib (at any zlib level: level 1 compresses these
-floats as little and barely faster), the largest part of the outputs phase. ParaView and
-meshio read both; ``"zlib"`` here trades the time back for 1.6× smaller files."""
+VTU_COMPRESSION: str | None = "zlib"
+"""The compression of the VTU files of a run (:func:`jaxelastic.io.write_vtu`) up to
+:data:`VTU_RAW_CELLS` cells: zlib (a 336-node frame took ~455 kB uncompressed)."""
+
+VTU_RAW_CELLS = 50_000
+"""Meshes of at least this many cells write their VTU files uncompressed: twist at n = 29
+(146k tet4 cells, 27k nodes, float64 stress fields) took 0.13 s and 61 MB per file
+uncompressed vs 0.81 s and 39 MB with zlib (at any zlib level), the largest part of the
+outputs phase. ParaView and meshio read both."""
+
+
+def vtu_compression(built: Built) -> str | None:
+    """The VTU compression of a run's files: :data:`VTU_COMPRESSION` below
+    :data:`VTU_RAW_CELLS` cells, none above."""
+    return VTU_COMPRESSION if built.mesh.n_cells < VTU_RAW_CELLS else None
 
 
 def state_stress_fields(built: Built, x) -> tuple[dict, dict] | None:
@@ -335,7 +355,7 @@ def write_static_vtu(built: Built, out: str, t: float, x, *, fields=None) -> str
         built.params,
         plane=plane,
         contact=contact,
-        compression=VTU_COMPRESSION,
+        compression=vtu_compression(built),
     ) as w:
         w.write(t, x, fields=fields)
     remove_stale(out, "static", 1)
@@ -653,14 +673,28 @@ def _partition_row(p: dict) -> str:
 
 
 def _reaction_row(r: dict, unit: str = "N") -> str | None:
-    """Reaction vs applied load per direction where either is non-zero."""
+    """Reaction vs applied load per direction where either is non-zero, then the reaction
+    of each ``[[dirichlet]]`` entry (where there are several)."""
+    per = r.get("reactions") or []
+    big = max((float(np.abs(e["reaction_force"]).max()) for e in per), default=0.0)
+    text = _total_reaction_row(r, unit, big)
+    if text is None or len(per) < 2:
+        return text
+    for e in per:
+        text += f"\n{e['key']} ({e['dofs']} dofs): {_vec(e['reaction_force'])} {unit}"
+    return text
+
+
+def _total_reaction_row(r: dict, unit: str = "N", scale_min: float = 0.0) -> str | None:
+    """The total reaction vs the applied load; components below 1e-9 of the largest force
+    (``scale_min``: the largest reaction of one support) count as zero."""
     R = np.asarray(r.get("reaction_force", []), float)
     F = np.asarray(r.get("total_applied_load", []), float)
     if R.size == 0:
         return None
     if F.size != R.size:
         F = np.zeros_like(R)
-    scale = max(float(np.abs(R).max()), float(np.abs(F).max()), 1e-300)
+    scale = max(float(np.abs(R).max()), float(np.abs(F).max()), scale_min, 1e-300)
     parts = []
     for a in range(R.size):
         if max(abs(R[a]), abs(F[a])) <= 1e-9 * scale:
@@ -673,7 +707,7 @@ def _reaction_row(r: dict, unit: str = "N") -> str | None:
             )
         else:
             parts.append(f"{name}: {_g(R[a])} {unit} (no applied load)")
-    return "\n".join(parts) if parts else f"0 {unit}"
+    return "\n".join(parts) if parts else f"0 {unit} in total"
 
 
 def _u_row(d: dict) -> str:

@@ -99,6 +99,8 @@ class Built(NamedTuple):
         probes: ``(node, point)`` per ``[output].probes`` entry (nearest node).
         tip: node whose displacement is plotted over time (first probe, or the node
             farthest from the Dirichlet nodes).
+        supports: ``(key, mask)`` per ``[[dirichlet]]`` entry, the mask ``(n_nodes, dim)``
+            bool of the dofs it prescribes (the reaction of each support is reported).
     """
 
     scene: Scene
@@ -117,6 +119,7 @@ class Built(NamedTuple):
     probes: list
     tip: int
     shard: Sharded | None = None
+    supports: tuple = ()
 
 
 class Sharded(NamedTuple):
@@ -956,4 +959,18 @@ def build(scene) -> Built:
         probes=probes,
         tip=tip,
         shard=sharded,
+        supports=_supports(scene, mesh, md),
     )
+
+
+def _supports(scene: Scene, mesh: Mesh, md) -> tuple:
+    """``(key, mask (n_nodes, dim))`` of each ``[[dirichlet]]`` entry's prescribed dofs."""
+    out = []
+    for i, d in enumerate(scene.spec.dirichlet):
+        key = f"[dirichlet][{i}]"
+        idx = select_nodes(scene, f"{key}.nodes", d.nodes, mesh, md)
+        mask = np.zeros(mesh.points.shape, bool)
+        comps = range(mesh.dim) if d.components is None else [axis_index(a) for a in d.components]
+        mask[np.ix_(np.asarray(idx), np.asarray(list(comps), dtype=np.int64))] = True
+        out.append((key, mask))
+    return tuple(out)

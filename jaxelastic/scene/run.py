@@ -28,7 +28,6 @@ from .contact import contact_report, min_gap
 from .interrupt import Interrupted
 from .load import load_scene
 from .outputs import (
-    VTU_COMPRESSION,
     deformation_report,
     displacement_report,
     dynamic_figures,
@@ -44,6 +43,7 @@ from .outputs import (
     run_warnings,
     state_stress_fields,
     static_figure,
+    vtu_compression,
     vtu_plane,
     write_static_vtu,
 )
@@ -347,7 +347,7 @@ def _simulate(built: Built, out: str, progress: bool, summary: dict):
     if built.scene.spec.output.vtu:
         writer = TimeSeriesWriter(
             out, "dynamic", built.mesh, built.psi, built.params, plane=vtu_plane(built),
-            contact=built.potential.contact, compression=VTU_COMPRESSION,
+            contact=built.potential.contact, compression=vtu_compression(built),
         )  # fmt: skip
     mon = _Monitor(built, writer, n_steps)
     log(progress, f"{n_steps} time steps of h = {integ.h:g} s (the first includes compilation)")
