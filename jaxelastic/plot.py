@@ -241,14 +241,27 @@ def _magnified(configs: dict, factor: float) -> dict:
     }
 
 
+UNIFORM_REL = 1e-6
+"""A field whose range is at most this fraction of its magnitude is drawn as uniform: one
+colour and one colour-bar tick with its value (its variation is round-off, which a
+stretched colour range would draw as gradients)."""
+
+
 def _value_norm(values):
+    """The colour range of ``values``; a (nearly) uniform field gets a range centred on its
+    value and the attribute ``uniform_value`` (read by the colour bar)."""
     from matplotlib.colors import Normalize
 
     v = np.asarray(values, dtype=float)
     fin = v[np.isfinite(v)]
     lo, hi = (float(fin.min()), float(fin.max())) if fin.size else (0.0, 1.0)
-    if hi <= lo:
-        hi = lo + max(abs(lo), 1.0) * 1e-9
+    scale = max(abs(lo), abs(hi))
+    if hi - lo <= UNIFORM_REL * scale or hi <= lo:
+        mid = 0.5 * (lo + hi)
+        half = max(0.05 * abs(mid), 1e-300) if mid else 1.0
+        norm = Normalize(mid - half, mid + half)
+        norm.uniform_value = mid  # type: ignore[attr-defined]
+        return norm
     return Normalize(lo, hi)
 
 
@@ -455,6 +468,11 @@ def _colorbar(fig, ax, mappable, label: str) -> None:
     from matplotlib.ticker import ScalarFormatter
 
     cb = fig.colorbar(mappable, ax=ax, shrink=0.85, pad=0.02)
+    uniform = getattr(mappable.norm, "uniform_value", None)
+    if uniform is not None:  # one tick with the value, no offset: a uniform field
+        cb.set_ticks([uniform], labels=[f"{uniform:.4g}"])
+        cb.set_label(f"{label} (uniform)" if label else "uniform")
+        return
     fmt = cb.formatter
     if isinstance(fmt, ScalarFormatter):
         fmt.set_powerlimits((-3, 4))  # 1e5 Pa with an offset "1e5", not 100000

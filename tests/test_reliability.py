@@ -614,3 +614,24 @@ def test_the_reaction_row_lists_each_support_and_hides_round_off():
     text = run_table(s)
     assert "0 N in total" in text and "e-14" not in text
     assert "[dirichlet][1] (6 dofs): (56, -1) N" in text
+
+
+@pytest.mark.parametrize("value", [2.178e7, 0.0])
+def test_a_uniform_field_is_drawn_uniform_with_its_value(value):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from jaxelastic import plot
+
+    mesh = je.rectangle(2, 2)
+    noise = 1e-9 * value * np.random.default_rng(0).standard_normal(mesh.n_nodes)
+    fig = plot.final_shape_figure(
+        mesh, {"rest": mesh.points, "x": mesh.points * 1.01}, values=value + noise,
+        values_label="von Mises [Pa]",
+    )  # fmt: skip
+    cbar = [a for a in fig.axes if a.get_label() == "<colorbar>"][0]
+    fig.canvas.draw()
+    labels = [t.get_text() for t in cbar.get_yticklabels()]
+    assert labels == [f"{value:.4g}"]
+    assert cbar.get_ylabel() == "von Mises [Pa] (uniform)"
+    assert cbar.yaxis.get_offset_text().get_text() == ""
