@@ -635,3 +635,31 @@ def test_a_uniform_field_is_drawn_uniform_with_its_value(value):
     assert labels == [f"{value:.4g}"]
     assert cbar.get_ylabel() == "von Mises [Pa] (uniform)"
     assert cbar.yaxis.get_offset_text().get_text() == ""
+
+
+def test_contact_pictures_draw_the_obstacles():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from jaxelastic import plot
+
+    a = jnp.asarray
+    mesh = je.rectangle(2, 2)
+    obs = (
+        C.HalfSpace(a([0.0, -0.1]), a([0.0, 1.0])),
+        C.Sphere(a([2.0, 0.5]), a(0.3)),
+        C.Box(a([-1.0, 0.0]), a([-0.5, 1.0])),
+    )
+    conf = {"rest": mesh.points, "x": mesh.points * 1.01}
+    bare = plot.final_shape_figure(mesh, conf)
+    fig = plot.final_shape_figure(mesh, conf, obstacles=obs)
+    assert len(fig.axes[0].patches) == len(bare.axes[0].patches) + 3
+    cube = je.box(1, 1, 1)
+    fig3 = plot.final_shape_figure(
+        cube, {"rest": cube.points, "x": cube.points * 1.01}, obstacles=(GROUND_3D,)
+    )
+    bare3 = plot.final_shape_figure(cube, {"rest": cube.points, "x": cube.points * 1.01})
+    assert len(fig3.axes[0].collections) == len(bare3.axes[0].collections) + 1
+
+
+GROUND_3D = C.HalfSpace(jnp.array([0.0, 0.0, -0.1]), jnp.array([0.0, 0.0, 1.0]))

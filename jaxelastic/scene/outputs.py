@@ -384,8 +384,11 @@ def von_mises_nodal(built: Built, x, *, fields=None):
 
 
 def _shape_colors(built: Built, x, fields=None) -> dict:
+    """The colours of a shape picture (von Mises stress) and the obstacles it shows."""
     vm = von_mises_nodal(built, x, fields=fields)
-    return {} if vm is None else dict(values=vm, values_label=VON_MISES_LABEL)
+    c = built.potential.contact
+    out = dict(obstacles=tuple(c.obstacles) if c is not None else ())
+    return out if vm is None else dict(out, values=vm, values_label=VON_MISES_LABEL)
 
 
 def static_figure(built: Built, out: str, x, *, fields=None) -> str:
