@@ -12,6 +12,7 @@ import re
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -663,3 +664,23 @@ def test_contact_pictures_draw_the_obstacles():
 
 
 GROUND_3D = C.HalfSpace(jnp.array([0.0, 0.0, -0.1]), jnp.array([0.0, 0.0, 1.0]))
+
+
+# ------------------------------------------------------------------ docs that cannot go stale
+
+
+def test_the_docs_list_every_shipped_scene():
+    import jaxelastic.scene as scene_pkg
+    from jaxelastic.scene import shipped_scenes
+
+    names = sorted(shipped_scenes())
+    doc = scene_pkg.__doc__ or ""
+    listed = re.search(r"Shipped scenes \(.*?\): (.*?)\.\n", doc, re.S)
+    assert listed is not None
+    assert sorted(re.findall(r"``(\w+)``", listed.group(1))) == names
+    guide = (ROOT / "docs" / "guide" / "scenes.md").read_text()
+    line = re.search(r"jaxelastic scenes +# shipped: (.*)", guide)
+    assert line is not None and sorted(line.group(1).split(", ")) == names
+
+
+ROOT = Path(__file__).resolve().parents[1]
