@@ -41,8 +41,11 @@ import atexit
 import contextlib
 import json
 import os
+import signal
 import sys
+import threading
 import time
+import warnings
 from typing import NoReturn
 
 from .cache import cache_dir as cache_dir
@@ -50,16 +53,30 @@ from .cache import cache_dir as cache_dir
 __all__ = ["main", "command", "cache_dir"]
 
 
+class UsageError(ValueError):
+    """Bad command-line input (exit status 2)."""
+
+
 def _parse_value(text: str):
-    """A ``--set`` value in TOML syntax; a bare word is a string."""
+    """A ``--set`` value in TOML syntax; a bare word is a string.
+
+    Raises:
+        UsageError: a value that starts like a TOML array, table or string but is not
+            valid TOML (the TOML error is reported, not a type error later), or one nested
+            too deeply.
+    """
     if sys.version_info >= (3, 11):
         import tomllib
     else:  # Python < 3.11
         import tomli as tomllib
     try:
         return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
+    except tomllib.TOMLDecodeError as e:
+        if text.lstrip().startswith(("[", "{", '"', "'")):
+            raise UsageError(f"invalid TOML value {text!r}: {e}") from None
         return text
+    except RecursionError:
+        raise UsageError(f"the value {text[:40]!r}... is nested too deeply") from None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -222,6 +239,7 @@ def _report(summary: dict, args, clock, t0: float, fit: bool = False) -> None:
             summary=summary["outputs"].get("summary"),
             wall_time=wall,
             compile_time=clock.seconds,
+            warnings=summary.get("warnings", []),
         )
         if fit:
             line.update(E=summary["result"]["E"], nu=summary["result"]["nu"])
@@ -255,25 +273,35 @@ def _run(args) -> int:
         if not sep or not key.strip():
             print(f"jaxelastic: error: --set expects KEY=VALUE, got {item!r}", file=sys.stderr)
             return 2
-        overrides[key.strip()] = _parse_value(val.strip())
+        try:
+            overrides[key.strip()] = _parse_value(val.strip())
+        except UsageError as e:
+            print(f"jaxelastic: error: --set {key.strip()}: {e}", file=sys.stderr)
+            return 2
     _enable_jax(cache=not args.no_cache)
     from .scene import run_scene
     from .scene.outputs import CompileClock
-    from .solvers import SolveError
+    from .solvers import SolveError, SolveWarning
 
     t0 = time.perf_counter()
     clock = CompileClock()
+    out, fresh = None, False
     try:
         scene = load_scene(args.scene, overrides=overrides)
         out = args.out or os.path.join("jaxelastic-out", scene.name)
+        fresh = not os.path.exists(out)
         if args.command == "unload":
             return _unload(scene, out, args)
         if args.command == "fit" or scene.get("fit") is not None:
             return _fit(scene, out, args, t0, clock)
-        with clock:
+        with clock, warnings.catch_warnings():
+            # the summary table lists the run's warnings (a loud row each)
+            warnings.simplefilter("ignore", SolveWarning)
             summary = run_scene(scene, out, progress=not args.no_progress)
     except SceneError as e:
         print(f"jaxelastic: error: {e}", file=sys.stderr)
+        if out is not None and fresh:
+            _remove_if_empty(out)
         return 2
     except SolveError as e:
         print(f"jaxelastic: solve failed: {e}", file=sys.stderr)
@@ -313,11 +341,14 @@ def _fit(scene, out: str, args, t0: float, clock) -> int:
     from .scene.fit import run_fit
     from .solvers import GradientError, SolveError
 
+    fresh = not os.path.exists(out)
     try:
         with clock:
             summary = run_fit(scene, out, progress=not args.no_progress)
     except SceneError as e:
         print(f"jaxelastic: error: {e}", file=sys.stderr)
+        if fresh:
+            _remove_if_empty(out)
         return 2
     except (SolveError, GradientError) as e:
         print(f"jaxelastic: fit failed: {e}", file=sys.stderr)
@@ -327,6 +358,14 @@ def _fit(scene, out: str, args, t0: float, clock) -> int:
         return 2
     _report(summary, args, clock, t0, fit=True)
     return 0
+
+
+def _remove_if_empty(out: str) -> None:
+    """Remove the output directory this command created for a scene refused after all (a
+    refused scene leaves nothing behind)."""
+    with contextlib.suppress(OSError):
+        if os.path.isdir(out) and not os.listdir(out):
+            os.rmdir(out)
 
 
 def _interrupted(e: KeyboardInterrupt) -> int:
@@ -364,6 +403,10 @@ def command() -> NoReturn:
     XLA client and every module) is skipped: it took 0.5 s after a twist n = 29 run.
     """
     rc = main()
+    # a signal from now on would only cut the exit handlers (and print their traceback)
+    with contextlib.suppress(ValueError, OSError):  # (not the main thread)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
@@ -371,8 +414,40 @@ def command() -> NoReturn:
     os._exit(rc)
 
 
+def _early_stop(signum, frame) -> None:
+    """SIGINT/SIGTERM before the run's own handlers are installed (while JAX, SciPy and
+    the scene modules import): stop with the usual one-line message."""
+    e = KeyboardInterrupt()
+    e.signame = signal.Signals(signum).name  # type: ignore[attr-defined]
+    raise e
+
+
 def main(argv=None) -> int:
-    """Entry point of the ``jaxelastic`` command; returns the exit status."""
+    """Entry point of the ``jaxelastic`` command; returns the exit status.
+
+    SIGINT and SIGTERM are handled from the start (exit status 130 and one line, never a
+    traceback); a closed stdout (``jaxelastic schema | head``) ends the command quietly.
+    """
+    previous = {}
+    try:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                previous[sig] = signal.signal(sig, _early_stop)
+        return _main(argv)
+    except KeyboardInterrupt as e:
+        return _interrupted(e)
+    except BrokenPipeError:  # the reader of stdout went away: nothing more to say
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return 0
+    finally:
+        for sig, h in previous.items():
+            with contextlib.suppress(ValueError, OSError, TypeError):
+                signal.signal(sig, h)
+
+
+def _main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "crosscheck":
         return _crosscheck(argv[1:])

@@ -80,6 +80,8 @@ __all__ = [
     "kinetic_energy",
     "total_energy",
     "static_potential",
+    "check_time_step",
+    "H_MIN",
 ]
 
 
@@ -244,6 +246,30 @@ def static_potential(base: Potential, integ: Integrator) -> Potential:
     return base.replace(**kw)
 
 
+H_MIN = 1e-150
+"""The smallest time step accepted [s]: the inertia term m/h² must stay finite in float64
+(a subnormal h makes it overflow, and the step fails with NaN)."""
+
+
+def check_time_step(h) -> None:
+    """Refuse a time step ``h`` [s] that is not a finite number in [:data:`H_MIN`, ∞).
+
+    Raises:
+        ValueError: naming ``h`` and what to do.
+    """
+    try:
+        f = float(h)
+    except (TypeError, ValueError):
+        raise ValueError(f"time step h must be a number [s], got {h!r}") from None
+    if not (math.isfinite(f) and f > 0):
+        raise ValueError(f"time step h must be a finite number > 0 [s], got {h!r}")
+    if f < H_MIN:
+        raise ValueError(
+            f"time step h = {f!r} s is below {H_MIN:g} s: the inertia term m/h^2 overflows "
+            "float64. Use a time step of the order of the dynamics you want to see"
+        )
+
+
 def _check_dynamic(base: Potential, integ: Integrator):
     if base.mass is None:
         raise ValueError(
@@ -251,8 +277,8 @@ def _check_dynamic(base: Potential, integ: Integrator):
         )
     if not isinstance(integ, Integrator):
         raise TypeError(f"integ must be a je.Integrator(h, ...), got {type(integ).__name__}")
-    if not isinstance(integ.h, Tracer) and not integ.h > 0:
-        raise ValueError(f"time step h must be > 0, got {integ.h!r}")
+    if not isinstance(integ.h, Tracer):
+        check_time_step(integ.h)
     if integ.method not in ("backward_euler", "bdf2"):
         raise ValueError(f"method must be 'backward_euler' or 'bdf2', got {integ.method!r}")
     for name in ("alpha", "beta"):
@@ -441,6 +467,11 @@ def _step_record(t: float, res: Solution, en, wall: float) -> dict:
         linear_iterations=int(st["linear_iterations"]),
         residual=float(st["residual"]),
         line_search_cutbacks=int(st["line_search_cutbacks"]),
+        min_J=float(st["min_J"]),
+        min_J_cell=int(st["min_J_cell"]),
+        max_strain=float(st["max_strain"]),
+        achieved_rtol=float(st["achieved_rtol"]),
+        floor_limited=bool(st.get("floor_limited", False)),
         wall_time=wall,
         kinetic=float(en[0]),
         elastic=float(en[1]),

@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike
 
 from .deprecation import moved_attributes
 from .mechanics.pressure import Pressure, pressure_term
-from .mesh import Mesh, boundary_facets, geometry
+from .mesh import Mesh, boundary_facets, facet_owners, geometry
 from .mesh.elements import Element
 
 __all__ = [
@@ -137,6 +137,8 @@ def fix(
         mesh: the mesh (rest positions X).
         nodes: node indices ``(m,)`` or a boolean mask ``(n_nodes,)``.
         components: which components to prescribe, e.g. ``(0,)`` or ``(0, 2)``; all when None.
+            Integers only: ``fix(mesh, nodes, [0.4, 0, 0])`` is refused (a displacement
+            goes in ``displacement=``).
         displacement: None (clamped, u = 0), a constant ``(dim,)`` vector, an ``(m, dim)``
             array, or a function ``u(X) -> (m, dim)`` of the rest positions ``(m, dim)``.
 
@@ -148,7 +150,7 @@ def fix(
     idx = _node_array(nodes, n)
     if idx.size == 0:
         raise ValueError("fix(): the node set is empty (check the predicate/box/group)")
-    comps = np.arange(d) if components is None else np.asarray(components, dtype=np.int64)
+    comps = np.arange(d) if components is None else _components(components, d)
     if comps.size == 0 or comps.min() < 0 or comps.max() >= d:
         raise ValueError(f"components must be a subset of 0..{d - 1}, got {components!r}")
     if displacement is None:
@@ -184,6 +186,19 @@ def with_rest_points(bc: Dirichlet, old_points, new_points) -> Dirichlet:
     old = jnp.asarray(old_points, new.dtype)
     values = jnp.asarray(bc.values, new.dtype)
     return Dirichlet(mask=bc.mask, values=new + (values - old))
+
+
+def _components(components, d: int) -> np.ndarray:
+    """``components`` as int64 axis indices, refusing anything that is not an integer
+    (a displacement vector passed in its place, booleans)."""
+    a = np.asarray(components)
+    if a.dtype == bool or not np.issubdtype(a.dtype, np.integer):
+        raise TypeError(
+            f"fix(): components must be integer axis indices in 0..{d - 1} (e.g. (0,) or "
+            f"(0, 2)), got {components!r}; to prescribe a displacement pass it as "
+            f"displacement=..., e.g. fix(mesh, nodes, displacement={components!r})"
+        )
+    return a.astype(np.int64).ravel()
 
 
 def combine(*bcs: Dirichlet) -> Dirichlet:
@@ -290,7 +305,8 @@ def traction_load(mesh: Mesh, facets, traction) -> np.ndarray:
     """Nodal forces ``(n_nodes, dim)`` of a dead traction on boundary facets.
 
     Args:
-        facets: ``(m, n_facet_nodes)`` node indices of boundary facets.
+        facets: ``(m, n_facet_nodes)`` node indices of boundary facets (an interior
+            facet, shared by two cells, is refused: its load would act inside the body).
         traction: force per *reference* area, ``(dim,)`` or ``(m, dim)`` [Pa];
             a callable ``t(X_centroid (m, dim)) -> (m, dim)`` (centroid of the corners).
             Constant per facet, integrated consistently: ``f_a = t ∫N_a dA``.
@@ -306,6 +322,8 @@ def traction_load(mesh: Mesh, facets, traction) -> np.ndarray:
         )
     if facets.size and (facets.min() < 0 or facets.max() >= n):
         raise ValueError(f"facets reference node indices outside [0, {n})")
+    if facets.size:
+        facet_owners(mesh, facets, where="traction_load")  # boundary facets only
     Nint, _, _ = facet_integrals(X, facets, mesh.element_type)
     m = facets.shape[0]
     if callable(traction):

@@ -241,14 +241,27 @@ def _magnified(configs: dict, factor: float) -> dict:
     }
 
 
+UNIFORM_REL = 1e-6
+"""A field whose range is at most this fraction of its magnitude is drawn as uniform: one
+colour and one colour-bar tick with its value (its variation is round-off, which a
+stretched colour range would draw as gradients)."""
+
+
 def _value_norm(values):
+    """The colour range of ``values``; a (nearly) uniform field gets a range centred on its
+    value and the attribute ``uniform_value`` (read by the colour bar)."""
     from matplotlib.colors import Normalize
 
     v = np.asarray(values, dtype=float)
     fin = v[np.isfinite(v)]
     lo, hi = (float(fin.min()), float(fin.max())) if fin.size else (0.0, 1.0)
-    if hi <= lo:
-        hi = lo + max(abs(lo), 1.0) * 1e-9
+    scale = max(abs(lo), abs(hi))
+    if hi - lo <= UNIFORM_REL * scale or hi <= lo:
+        mid = 0.5 * (lo + hi)
+        half = max(0.05 * abs(mid), 1e-300) if mid else 1.0
+        norm = Normalize(mid - half, mid + half)
+        norm.uniform_value = mid  # type: ignore[attr-defined]
+        return norm
     return Normalize(lo, hi)
 
 
@@ -455,6 +468,11 @@ def _colorbar(fig, ax, mappable, label: str) -> None:
     from matplotlib.ticker import ScalarFormatter
 
     cb = fig.colorbar(mappable, ax=ax, shrink=0.85, pad=0.02)
+    uniform = getattr(mappable.norm, "uniform_value", None)
+    if uniform is not None:  # one tick with the value, no offset: a uniform field
+        cb.set_ticks([uniform], labels=[f"{uniform:.4g}"])
+        cb.set_label(f"{label} (uniform)" if label else "uniform")
+        return
     fmt = cb.formatter
     if isinstance(fmt, ScalarFormatter):
         fmt.set_powerlimits((-3, 4))  # 1e5 Pa with an offset "1e5", not 100000
@@ -471,6 +489,101 @@ def _plane_figsize(aspect: float) -> tuple[float, float]:
     return max(w_ax + 2.4, 5.0), h_ax + 1.7
 
 
+OBSTACLE_COLOR, OBSTACLE_ALPHA = "0.45", 0.35
+"""How obstacles are drawn in the pictures (grey, translucent, behind the body)."""
+
+
+def _obstacle_kind(ob) -> str:
+    return type(ob).__name__ if type(ob).__name__ in ("HalfSpace", "Sphere", "Box") else ""
+
+
+def _draw_obstacles_2d(ax, obstacles, pts: np.ndarray, i: int, j: int) -> None:
+    """Obstacles in the ``(i, j)`` view plane: a half-space as a band beyond its line
+    (when its normal lies in the view), a sphere as a disc, a box as a rectangle."""
+    from matplotlib.patches import Circle, Polygon, Rectangle
+
+    lo, hi = pts.min(0), pts.max(0)
+    pad = 0.5 * float(np.max(hi - lo)) or 1.0
+    for ob in obstacles:
+        kind = _obstacle_kind(ob)
+        if kind == "Sphere":
+            c, r = np.asarray(ob.center, float), float(ob.radius)
+            ax.add_patch(
+                Circle((c[i], c[j]), r, color=OBSTACLE_COLOR, alpha=OBSTACLE_ALPHA, zorder=0)
+            )
+        elif kind == "Box":
+            a, b = np.asarray(ob.lo, float), np.asarray(ob.hi, float)
+            ax.add_patch(
+                Rectangle(
+                    (a[i], a[j]),
+                    b[i] - a[i],
+                    b[j] - a[j],
+                    color=OBSTACLE_COLOR,
+                    alpha=OBSTACLE_ALPHA,
+                    zorder=0,
+                )
+            )
+        elif kind == "HalfSpace":
+            n = np.asarray(ob.normal, float)
+            n2 = np.array([n[i], n[j]])
+            if np.linalg.norm(n2) < 0.5 * np.linalg.norm(n):
+                continue  # the plane is (nearly) parallel to the view
+            n2 = n2 / np.linalg.norm(n2)
+            p0 = np.asarray(ob.point, float)[[i, j]]
+            t = np.array([-n2[1], n2[0]])
+            L = float(np.linalg.norm(hi - lo)) + 2 * pad
+            mid = p0 + t * float(np.dot(0.5 * (lo + hi)[[i, j]] - p0, t))
+            a, b = mid - L * t, mid + L * t
+            ax.add_patch(
+                Polygon(
+                    [a, b, b - 0.3 * pad * n2, a - 0.3 * pad * n2],
+                    color=OBSTACLE_COLOR,
+                    alpha=OBSTACLE_ALPHA,
+                    zorder=0,
+                )
+            )
+
+
+def _draw_obstacles_3d(ax, obstacles, pts: np.ndarray) -> None:
+    """Obstacles in a 3D view: a half-space as a square of its plane under the body, a
+    sphere and a box as wireframes."""
+    lo, hi = pts.min(0), pts.max(0)
+    size = float(np.max(hi - lo)) or 1.0
+    style = dict(color=OBSTACLE_COLOR, alpha=OBSTACLE_ALPHA)
+    for ob in obstacles:
+        kind = _obstacle_kind(ob)
+        if kind == "HalfSpace":
+            n = np.asarray(ob.normal, float)
+            n = n / np.linalg.norm(n)
+            u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+            u = u / np.linalg.norm(u)
+            v = np.cross(n, u)
+            c = 0.5 * (lo + hi)
+            c = c - np.dot(c - np.asarray(ob.point, float), n) * n  # onto the plane
+            s, t = np.meshgrid([-size, size], [-size, size])
+            P = c[:, None, None] + u[:, None, None] * s + v[:, None, None] * t
+            ax.plot_surface(P[0], P[1], P[2], **style, shade=False)
+        elif kind == "Sphere":
+            c, r = np.asarray(ob.center, float), float(ob.radius)
+            a, b = np.meshgrid(np.linspace(0, 2 * np.pi, 24), np.linspace(0, np.pi, 12))
+            ax.plot_wireframe(
+                c[0] + r * np.cos(a) * np.sin(b), c[1] + r * np.sin(a) * np.sin(b),
+                c[2] + r * np.cos(b), linewidth=0.5, **style,
+            )  # fmt: skip
+        elif kind == "Box":
+            a, b = np.asarray(ob.lo, float), np.asarray(ob.hi, float)
+            for k in range(3):  # the 12 edges: 4 along each axis
+                for p in range(2):
+                    for q in range(2):
+                        other = [m for m in range(3) if m != k]
+                        e0 = np.array(a, float)
+                        e0[other[0]] = (a, b)[p][other[0]]
+                        e0[other[1]] = (a, b)[q][other[1]]
+                        e1 = e0.copy()
+                        e1[k] = b[k]
+                        ax.plot(*zip(e0, e1, strict=True), linewidth=0.8, **style)
+
+
 def final_shape_figure(
     mesh,
     configurations,
@@ -480,8 +593,12 @@ def final_shape_figure(
     values_label: str | None = None,
     scale="auto",
     cmap: str = "viridis",
+    obstacles=(),
 ):
     """A standalone figure of the rest and deformed configurations (rest first).
+
+    Long because: the choice of view, the magnification and the decorations (colour bar,
+    legend, obstacles, title) of one figure read best in order.
 
     2D: the outlines in the plane. 3D: a side view (:func:`shapes`) for an elongated body
     (longest rest extent ≥ 2× the others, e.g. a beam), else a perspective view
@@ -498,6 +615,8 @@ def final_shape_figure(
             :func:`jaxelastic.postprocess.nodal_stress` recovers), or None for |u| [m].
         values_label: the colour bar's label (default ``"|u| [m]"`` without ``values``).
         scale: ``"auto"`` or a displacement factor ≥ 1 (1: true scale).
+        obstacles: contact obstacles to draw in grey (half-spaces, spheres, boxes of
+            :mod:`jaxelastic.contact`, at rest; others are skipped).
     """
     from matplotlib.figure import Figure
 
@@ -524,6 +643,7 @@ def final_shape_figure(
         fig = Figure(figsize=(7.0, 6.4), layout="constrained")
         ax = fig.add_subplot(projection="3d")
         m = shapes_3d(ax, mesh, configs, values=values, cmap=cmap, legend=False)
+        _draw_obstacles_3d(ax, obstacles, np.concatenate(confs))
         view = ""
     else:
         i, j = view_axes(rest, confs[1:])
@@ -533,6 +653,7 @@ def final_shape_figure(
         )
         ax = fig.add_subplot()
         m = shapes(ax, mesh, configs, axes=(i, j), values=values, cmap=cmap, legend=False)
+        _draw_obstacles_2d(ax, obstacles, np.concatenate(confs), i, j)
         view = "" if mesh.dim == 2 else f"side view, {_AXIS_NAMES[i]}-{_AXIS_NAMES[j]} plane"
     if m is not None:
         _colorbar(fig, ax, m, values_label or "")

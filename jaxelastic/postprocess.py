@@ -24,7 +24,7 @@ from .loads import Dirichlet, facet_integrals
 from .mechanics.checks import cell_params_axes, check_positions, check_psi, psi_name
 from .mechanics.kernels import first_piola, forces
 from .mechanics.kinematics import deformation_gradients, det, green_strain
-from .mesh import Mesh
+from .mesh import Mesh, facet_owners
 from .mesh.elements import ref_nodes
 
 __all__ = ["cell_fields", "nodal_stress", "stress_fields", "reaction_force", "facet_tractions"]
@@ -305,22 +305,25 @@ def facet_tractions(psi, x, mesh: Mesh, params, facets) -> np.ndarray:
     """Nominal traction ``τ = P·N`` ``(m, dim)`` on boundary facets (force / reference area).
 
     P is the weighted average over the quadrature points of the cell that owns each facet
-    (the one value for P1; of P(F̄) under F-bar), N is the outward rest normal.
+    (the one value for P1; of P(F̄) under F-bar), N is the outward rest normal of that cell
+    (whatever the order of the facet's nodes).
+
+    Raises:
+        ValueError: a row that is not a boundary facet (interior facets are refused).
     """
     check_positions(x, mesh, where="facet_tractions")
     check_psi(psi, mesh.dim, mesh.points.dtype, params, mesh.n_cells, where="facet_tractions")
     facets = np.asarray(facets, dtype=np.int64)
     el = mesh.element_type
     d = mesh.dim
-    cells = np.asarray(mesh.cells)
-    local = np.asarray(el.facet_nodes)
-    all_f = np.sort(cells[:, local[:, :d]].reshape(-1, d), axis=1)
-    owner = {tuple(k): i // local.shape[0] for i, k in enumerate(all_f)}
-    try:
-        cidx = np.array([owner[tuple(k)] for k in np.sort(facets[:, :d], axis=1)])
-    except KeyError as e:
-        raise ValueError(f"facet {e.args[0]} is not a facet of any cell") from None
+    cidx = facet_owners(mesh, facets, where="facet_tractions")  # boundary facets only
     _, _, N = facet_integrals(mesh.points, facets, el)
+    # outward from the owning cell whatever the facet's node order: N points away from
+    # the cell's centroid (the cell lies on one side of its own facet)
+    X = np.asarray(mesh.points, dtype=np.float64)
+    cells = np.asarray(mesh.cells)
+    away = X[facets[:, :d]].mean(1) - X[cells[cidx, : d + 1]].mean(1)  # (m, d)
+    N = np.where(np.sum(np.asarray(N) * away, axis=1, keepdims=True) < 0, -N, N)
     return np.asarray(_tractions(psi, x, mesh, params, jnp.asarray(cidx), jnp.asarray(N)))
 
 

@@ -1,8 +1,8 @@
 """Inverse elastostatics, :func:`jaxelastic.unloaded_shape`: the direct (inverse-motion,
 Newton on X) and the backward-displacement fixed-point methods recover the rest shape of
-a neo-Hookean cantilever sagging under its own weight; the forward solve from the result
-reproduces the loaded shape (≤ 1e-8 relative), and so for an inflated thick sphere; bad targets are refused; the node colouring
-behind the Jacobian is a distance-2 colouring."""
+a neo-Hookean cantilever sagging under its own weight, and of an inflated thick sphere; the
+forward solve from the result reproduces the loaded shape (≤ 1e-8 relative); bad targets
+are refused; the node colouring behind the Jacobian is a distance-2 colouring."""
 
 import json
 

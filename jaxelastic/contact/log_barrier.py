@@ -26,6 +26,7 @@ __all__ = [
     "barrier_d1",
     "barrier_d2",
     "DHAT_REL",
+    "DHAT_MAX_REL",
     "default_dhat",
     "kappa_from_stiffness",
     "adapt_kappa",
@@ -35,7 +36,11 @@ __all__ = [
 ]
 
 DHAT_REL = 1e-3
-"""Default barrier reach d̂ relative to the rest bounding-box diagonal."""
+"""Default barrier reach d̂ relative to the body's size (:func:`default_dhat`)."""
+
+DHAT_MAX_REL = 0.1
+"""The largest d̂ accepted, relative to the body's size: a reach beyond it pushes the
+obstacle's force across a large part of the body (and ends in MAX_STEPS)."""
 
 SMALL_GAP = 1e-2
 """:func:`adapt_kappa` doubles κ once the smallest gap falls below this fraction of d̂."""
@@ -71,9 +76,11 @@ def barrier_d2(d: jax.Array, dhat) -> jax.Array:
 
 
 def default_dhat(points: jax.Array, rel: float = DHAT_REL) -> jax.Array:
-    """``rel`` × the bounding-box diagonal of ``points`` ``(n, dim)`` [m]."""
-    ext = jnp.max(points, axis=0) - jnp.min(points, axis=0)
-    return rel * jnp.sqrt(jnp.sum(ext * ext))
+    """``rel`` × the body's size ``2·max‖X − X̄‖`` of ``points`` ``(n, dim)`` [m] (X̄ their
+    mean): rotation invariant, and the bounding-box diagonal of a box centred on its mean
+    (a rotated block gets the d̂ of the unrotated one)."""
+    c = jnp.mean(points, axis=0, keepdims=True)  # (1, dim)
+    return rel * 2.0 * jnp.sqrt(jnp.max(jnp.sum((points - c) ** 2, axis=1)))
 
 
 def kappa_from_stiffness(node_blocks: jax.Array, nodes: jax.Array) -> jax.Array:
@@ -83,8 +90,9 @@ def kappa_from_stiffness(node_blocks: jax.Array, nodes: jax.Array) -> jax.Array:
     With ``n`` the mean, the barrier's normal stiffness ``κ b''(d)`` equals the body's node
     stiffness at ``d ≈ 0.6 d̂`` and grows like ``κ d̂²/d²`` closer in.
     """
-    diag = jnp.diagonal(node_blocks[nodes], axis1=1, axis2=2)  # (m, dim)
-    return jnp.mean(jnp.abs(diag))
+    # the mean diagonal entry as trace/dim: the same for PSD blocks, and rotation invariant
+    tr = jnp.abs(jnp.trace(node_blocks[nodes], axis1=1, axis2=2))  # (m,)
+    return jnp.mean(tr) / node_blocks.shape[-1]
 
 
 def adapt_kappa(kappa, min_gap, dhat, max_kappa=None):

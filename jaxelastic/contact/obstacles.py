@@ -20,6 +20,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .ccd import conservative_toi, safe_norm
 
@@ -31,6 +32,9 @@ __all__ = [
     "Capsule",
     "SDF",
     "Obstacle",
+    "check_obstacle",
+    "interior_point",
+    "NORMAL_LENGTHS",
 ]
 
 
@@ -245,3 +249,95 @@ _register(Capsule, ["a", "b", "radius", "friction"])
 _register(SDF, ["params", "friction"], ["fn", "dim", "motion"])
 
 Obstacle = HalfSpace | Sphere | Box | RotatedBox | Capsule | SDF
+
+
+NORMAL_LENGTHS = (1e-100, 1e100)
+"""The lengths of a half-space normal :func:`check_obstacle` accepts (its square must
+neither underflow nor overflow in float64)."""
+
+
+def _concrete(v) -> np.ndarray | None:
+    """NumPy value of a leaf, or None when it is traced (checked only when concrete)."""
+    try:
+        return np.asarray(v, dtype=np.float64)
+    except Exception:  # noqa: BLE001 — a tracer (inside jit/grad)
+        return None
+
+
+def check_obstacle(ob, name: str = "obstacle") -> None:
+    """Refuse an obstacle no solve can use, naming the field: a negative or non-finite
+    friction coefficient, a zero or non-finite half-space normal, a sphere or capsule
+    radius ≤ 0, a box with ``hi ≤ lo`` or half-widths ≤ 0, a rotation that is not
+    orthonormal, non-finite coordinates. Traced fields are not checked. Used by
+    :func:`~jaxelastic.contact.make_contact` (the Python API and the scenes alike).
+
+    Raises:
+        TypeError: not an obstacle; ValueError: naming ``name`` and the field.
+    """
+    types = (HalfSpace, Sphere, Box, RotatedBox, Capsule, SDF)
+    if not isinstance(ob, types):
+        raise TypeError(
+            f"{name}: an obstacle must be one of HalfSpace, Sphere, Box, RotatedBox, "
+            f"Capsule, SDF (jaxelastic.contact), got {type(ob).__name__}"
+        )
+    kind = type(ob).__name__
+    fields = [f.name for f in dataclasses.fields(ob) if f.name not in ("fn", "motion", "dim")]
+    for f in fields:
+        if f == "params":
+            continue
+        a = _concrete(getattr(ob, f))
+        if a is not None and not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} ({kind}): {f} must be finite, got {a.tolist()}")
+    mu = _concrete(ob.friction)
+    if mu is not None and np.any(mu < 0):
+        raise ValueError(
+            f"{name} ({kind}): friction (the Coulomb coefficient mu) must be >= 0, got "
+            f"{mu.tolist()}"
+        )
+    if isinstance(ob, HalfSpace):
+        n = _concrete(ob.normal)
+        length = None if n is None else float(np.sqrt(np.sum(n * n)))
+        if (
+            n is not None
+            and length is not None
+            and not (NORMAL_LENGTHS[0] <= length <= NORMAL_LENGTHS[1])
+        ):
+            raise ValueError(
+                f"{name} ({kind}): normal must be a non-zero vector pointing into the free "
+                f"side, of length between {NORMAL_LENGTHS[0]:g} and {NORMAL_LENGTHS[1]:g} "
+                f"(it is normalised; a unit vector is best), got {n.tolist()}"
+            )
+    if isinstance(ob, (Sphere, Capsule)):
+        r = _concrete(ob.radius)
+        if r is not None and np.any(r <= 0):
+            raise ValueError(f"{name} ({kind}): radius must be > 0, got {r.tolist()}")
+    if isinstance(ob, Box):
+        lo, hi = _concrete(ob.lo), _concrete(ob.hi)
+        if lo is not None and hi is not None and np.any(hi <= lo):
+            raise ValueError(
+                f"{name} ({kind}): hi must exceed lo in every coordinate, got lo = "
+                f"{lo.tolist()}, hi = {hi.tolist()}"
+            )
+    if isinstance(ob, RotatedBox):
+        half, R = _concrete(ob.half), _concrete(ob.rotation)
+        if half is not None and np.any(half <= 0):
+            raise ValueError(f"{name} ({kind}): half-widths must be > 0, got {half.tolist()}")
+        if R is not None and not np.allclose(R.T @ R, np.eye(len(R)), atol=1e-8):
+            raise ValueError(f"{name} ({kind}): rotation must be orthonormal (R^T R = I)")
+
+
+def interior_point(ob) -> jax.Array | None:
+    """A point inside the obstacle at rest ``(dim,)`` [m] (None for a user SDF, whose
+    inside is unknown): the centre of a sphere or box, the midpoint of a capsule's axis,
+    a point one unit behind a half-space's plane."""
+    if isinstance(ob, HalfSpace):
+        return jnp.asarray(ob.point) - ob._n()
+    if isinstance(ob, Sphere):
+        return jnp.asarray(ob.center)
+    if isinstance(ob, Box):
+        return 0.5 * (jnp.asarray(ob.lo) + jnp.asarray(ob.hi))
+    if isinstance(ob, RotatedBox):
+        return jnp.asarray(ob.center)
+    if isinstance(ob, Capsule):
+        return 0.5 * (jnp.asarray(ob.a) + jnp.asarray(ob.b))
+    return None

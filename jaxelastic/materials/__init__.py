@@ -48,6 +48,9 @@ from .registry import FAMILY_PARAMS as FAMILY_PARAMS
 from .registry import FAMILY_POSITIVE_KEYS as FAMILY_POSITIVE_KEYS
 from .registry import FAMILY_TYPES as FAMILY_TYPES
 from .registry import MODEL_NAMES as MODEL_NAMES
+from .registry import MaterialParameterError as MaterialParameterError
+from .registry import check_family as check_family
+from .registry import check_material as check_material
 from .rubber import ArrudaBoyce as ArrudaBoyce
 from .rubber import Gent as Gent
 from .rubber import MooneyRivlin as MooneyRivlin
@@ -94,6 +97,9 @@ __all__ = [
     "MODEL_NAMES",
     "FAMILY_KEYS",
     "FAMILY_POSITIVE_KEYS",
+    "MaterialParameterError",
+    "check_family",
+    "check_material",
     "MooneyRivlin",
     "mooney_rivlin",
     "mooney_rivlin_params",

@@ -60,6 +60,12 @@ class HolzapfelGasserOgden(NamedTuple):
     a01: jax.Array
     a02: jax.Array
 
+    def for_cells(self, n_cells: int) -> HolzapfelGasserOgden:
+        """These parameters with shared ``(3,)`` directions broadcast to ``(n_cells, 3)``
+        (:func:`per_cell_fibres`): :class:`~jaxelastic.mechanics.potential.Potential`
+        calls it, so the documented ``holzapfel_gasser_ogden_params()`` works in a solve."""
+        return per_cell_fibres(self, n_cells)
+
     @property
     def shear_modulus(self):
         """Initial shear modulus: the matrix μ (the fibres carry no load at F = I)."""

@@ -24,6 +24,12 @@ Behaviour on inverted elements (J ≤ 0): ``neo_hookean`` and ``isochoric_neo_ho
 return ``+inf`` (their energy is undefined there; solvers detect and report it); StVK is
 finite but has zero energy at every reflection; the corotated family and stable neo-Hookean
 are finite and push back toward J > 0.
+
+``psi.defined_inverted = True`` marks the laws that are finite at J ≤ 0 (linear, StVK, the
+corotated family, ARAP, stable neo-Hookean): a solution with an inverted cell is then
+reported with a warning (``stats["min_J"]``); for every other ψ, user laws included unless
+they carry the mark, it is the failure ``Status.INVERTED``
+(:mod:`jaxelastic.solvers.newton`).
 """
 
 from __future__ import annotations
@@ -184,3 +190,13 @@ def isochoric_neo_hookean(F, params: Lame):
     IC = jnp.sum(F * F)
     psi = 0.5 * params.mu * (Js ** (-2.0 / d) * IC - d) + 0.5 * params.lam * (J - 1.0) ** 2
     return jnp.where(ok, psi, jnp.inf)
+
+
+# finite (defined) at J ≤ 0: an inverted cell is a warning, not a failed solve
+linear.defined_inverted = True
+stvk.defined_inverted = True
+corotated.defined_inverted = True
+fixed_corotated.defined_inverted = True
+arap.defined_inverted = True
+stable_neo_hookean.defined_inverted = True
+stable_neo_hookean_log.defined_inverted = True

@@ -9,6 +9,10 @@ schema validates ``[material]`` against.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
+import numpy as np
+
 from .fibres import HolzapfelGasserOgden, holzapfel_gasser_ogden, holzapfel_gasser_ogden_params
 from .isotropic import (
     arap,
@@ -20,6 +24,7 @@ from .isotropic import (
     stable_neo_hookean_log,
     stvk,
 )
+from .parameters import Lame, check_lame
 from .rubber import (
     ArrudaBoyce,
     Gent,
@@ -46,6 +51,11 @@ __all__ = [
     "MODEL_NAMES",
     "FAMILY_KEYS",
     "FAMILY_POSITIVE_KEYS",
+    "MaterialParameterError",
+    "check_family",
+    "check_material",
+    "GENT_JM_MIN",
+    "FIBRE_LENGTH_MIN",
 ]
 
 BUILTIN = {
@@ -106,3 +116,163 @@ FAMILY_KEYS = {name: tuple(t._fields) for name, t in FAMILY_TYPES.items()}
 
 FAMILY_POSITIVE_KEYS = frozenset({"c10", "kappa", "Jm", "lambda_m", "k2", "bulk", "mu"})
 """The rubber/tissue parameter keys whose values must be > 0."""
+
+
+GENT_JM_MIN = 1e-2
+"""The smallest Gent locking parameter J_m accepted: the chains lock at Ī₁ − 3 = J_m, so
+J_m = 0.01 already locks at about 6 % uniaxial stretch (rubbers: J_m ≈ 30–100)."""
+
+FIBRE_LENGTH_MIN = 1e-8
+"""The shortest HGO fibre direction accepted (ψ normalises it; a direction of length ~0
+has no direction)."""
+
+
+class MaterialParameterError(ValueError):
+    """A material constant no stable material has (:func:`check_family`).
+
+    Attributes:
+        key: the parameter's name (a field of the parameter type, e.g. ``"lambda_m"``).
+        reason: what is wrong, without the key (``"must be > 1, got 0.8"``).
+    """
+
+    def __init__(self, model: str, key: str, reason: str):
+        super().__init__(f"{model}: {key} {reason}")
+        self.model, self.key, self.reason = model, key, reason
+
+
+def _first(a: np.ndarray, bad: np.ndarray) -> str:
+    """The first offending value (and its cell, for a per-cell field)."""
+    if a.ndim == 0:
+        return repr(float(a))
+    i = int(np.flatnonzero(bad.ravel())[0])
+    return f"{float(a.ravel()[i])!r} (at {int(bad.sum())} cell(s), first cell {i})"
+
+
+def check_family(model: str, values: Mapping) -> None:
+    """Refuse rubber/tissue constants that make the material unstable or undefined: the
+    one validation of :data:`FAMILIES`' parameters, used by :func:`check_material` (the
+    Python API: ``je.solve``) and by the scene schema (``[material]``).
+
+    Long because: the conditions of the six families side by side, each a few lines, read
+    and review best as one table.
+
+    Checks, each naming the parameter: every value finite; a positive initial shear and
+    bulk modulus at F = I; and each family's own conditions — Mooney–Rivlin c10 > 0 and
+    c10 + c01 > 0; Yeoh c10 > 0; Ogden αₚ ≠ 0 and μₚαₚ ≥ 0 for every term (Ogden 1972's
+    stability condition); Gent μ > 0 and J_m ≥ :data:`GENT_JM_MIN`; Arruda–Boyce μ > 0 and
+    λ_m > 1 (λ_m = √N, the locking chain stretch: λ_m ≤ 1 locks at rest); HGO μ > 0,
+    k1 ≥ 0, k2 > 0, κ ∈ [0, 1/3] and fibre directions of length ≥ :data:`FIBRE_LENGTH_MIN`.
+
+    Args:
+        model: a name of :data:`FAMILIES`; values: parameter key → number or array
+            (per-cell fields are checked cell by cell; keys not given are skipped).
+
+    Raises:
+        MaterialParameterError: naming the model, the key and the first offending value.
+    """
+    arr = {}
+    for k, v in values.items():
+        try:
+            arr[k] = np.asarray(v, dtype=np.float64)
+        except (TypeError, ValueError):
+            continue  # cell data or regions (scene fibre keys): checked where they are read
+    for k, a in arr.items():
+        if (bad := ~np.isfinite(a)).any():
+            raise MaterialParameterError(model, k, f"must be finite, got {_first(a, bad)}")
+
+    def need(key: str, ok, what: str, a=None):
+        a = arr[key] if a is None else a
+        if (bad := ~np.asarray(ok)).any():
+            raise MaterialParameterError(model, key, f"{what}, got {_first(a, bad)}")
+
+    def has(*keys) -> bool:
+        return all(k in arr for k in keys)
+
+    for k in ("kappa", "bulk"):  # the volumetric term's modulus: the bulk modulus
+        if k in arr:
+            need(k, arr[k] > 0, "(the bulk modulus) must be > 0")
+    if model == "mooney_rivlin":
+        if has("c10"):
+            need("c10", arr["c10"] > 0, "must be > 0")
+        if has("c10", "c01"):
+            mu = 2.0 * (arr["c10"] + arr["c01"])
+            need("c01", mu > 0, "must exceed -c10 (the shear modulus 2(c10 + c01) must be > 0)")
+    elif model == "yeoh":
+        if has("c10"):
+            need("c10", arr["c10"] > 0, "(half the shear modulus) must be > 0")
+    elif model == "ogden":
+        for p in (1, 2, 3):
+            mu, al = f"mu{p}", f"alpha{p}"
+            if has(al):
+                need(al, arr[al] != 0, "must be nonzero (psi divides by it)")
+            if has(mu, al):
+                need(
+                    mu,
+                    arr[mu] * arr[al] >= 0,
+                    f"must have the sign of {al} (Ogden's stability condition mu_p alpha_p "
+                    f">= 0; {al} = {float(np.ravel(arr[al])[0])!r})",
+                )
+        if has("mu1", "mu2", "mu3", "alpha1", "alpha2", "alpha3"):
+            g = 0.5 * sum(arr[f"mu{p}"] * arr[f"alpha{p}"] for p in (1, 2, 3))
+            need("mu1", g > 0, "gives a shear modulus 1/2 sum mu_p alpha_p <= 0", g)
+    elif model == "gent":
+        if has("mu"):
+            need("mu", arr["mu"] > 0, "(the shear modulus) must be > 0")
+        if has("Jm"):
+            need(
+                "Jm",
+                arr["Jm"] >= GENT_JM_MIN,
+                f"(the locking limit of I1bar - 3) must be >= {GENT_JM_MIN:g} (rubbers: 30-100; "
+                "a tiny J_m locks the chains at once)",
+            )
+    elif model == "arruda_boyce":
+        if has("mu"):
+            need("mu", arr["mu"] > 0, "must be > 0")
+        if has("lambda_m"):
+            need(
+                "lambda_m",
+                arr["lambda_m"] > 1,
+                "(the locking stretch sqrt(N)) must be > 1 (rubbers: 3-10; lambda_m <= 1 "
+                "locks the chains at rest)",
+            )
+    elif model == "holzapfel_gasser_ogden":
+        if has("mu"):
+            need("mu", arr["mu"] > 0, "(the matrix shear modulus) must be > 0")
+        if has("k1"):
+            need("k1", arr["k1"] >= 0, "must be >= 0")
+        if has("k2"):
+            need("k2", arr["k2"] > 0, "must be > 0")
+        if has("kappa_dispersion"):
+            kd = arr["kappa_dispersion"]
+            need("kappa_dispersion", (kd >= 0) & (kd <= 1.0 / 3.0), "must lie in [0, 1/3]")
+        for k in ("a01", "a02"):
+            if has(k) and arr[k].ndim >= 1:
+                length = np.sqrt(np.sum(arr[k] ** 2, axis=-1))
+                need(
+                    k,
+                    length >= FIBRE_LENGTH_MIN,
+                    f"(a fibre direction) must have length >= {FIBRE_LENGTH_MIN:g}",
+                    length,
+                )
+
+
+def check_material(params, dim: int) -> None:
+    """Refuse concrete material parameters no stable material has: Lamé parameters
+    (:func:`~jaxelastic.materials.parameters.check_lame`) or the constants of a
+    rubber/tissue family (:func:`check_family`, by parameter type). Traced parameters and
+    user types are not checked.
+
+    Raises:
+        ValueError: naming the parameter (:class:`MaterialParameterError` for a family).
+    """
+    if isinstance(params, Lame):
+        check_lame(params, dim)
+        return
+    for name, t in FAMILY_TYPES.items():
+        if isinstance(params, t):
+            try:
+                values = {k: np.asarray(v) for k, v in params._asdict().items()}
+            except Exception:  # noqa: BLE001 — traced leaves (inside jit/grad): not checked
+                return
+            check_family(name, values)
+            return

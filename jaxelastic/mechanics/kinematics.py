@@ -18,6 +18,8 @@ at ``F = I``, at scaled rotations and at repeated singular values; :func:`polar`
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 
@@ -35,6 +37,9 @@ __all__ = [
     "polar_rotation",
     "trace_S",
     "svd_rv",
+    "principal_stretch_range",
+    "deformation_extremes",
+    "DeformationExtremes",
 ]
 
 
@@ -351,3 +356,65 @@ def _svd_rv_jvp(primals, tangents):
     wu = jnp.where(ok, (sj * P + si * P.T) / den_safe, 0.0)
     wv = jnp.where(ok, (si * P + sj * P.T) / den_safe, 0.0)
     return (U, s, V), (U @ wu, ds, V @ wv)
+
+
+def principal_stretch_range(F: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The smallest and largest principal stretch ``(λ_min, λ_max)`` of one ``(d, d)`` F.
+
+    The square roots of the extreme eigenvalues of ``C = FᵀF`` in closed form (2D: the
+    quadratic formula; 3D: the trigonometric solution of the characteristic cubic, Smith,
+    *Eigenvalues of a symmetric 3 × 3 matrix*, Commun. ACM 4(4):168, 1961) — no LAPACK
+    call, so it runs inside sharded programs too. Not meant to be differentiated.
+    """
+    C = F.T @ F
+    d = F.shape[0]
+    if d == 2:
+        m = 0.5 * (C[0, 0] + C[1, 1])
+        r = jnp.sqrt(0.25 * (C[0, 0] - C[1, 1]) ** 2 + C[0, 1] ** 2)
+        lo, hi = m - r, m + r
+    else:
+        q = jnp.trace(C) / 3.0
+        off = C[0, 1] ** 2 + C[0, 2] ** 2 + C[1, 2] ** 2
+        p2 = (C[0, 0] - q) ** 2 + (C[1, 1] - q) ** 2 + (C[2, 2] - q) ** 2 + 2.0 * off
+        p = jnp.sqrt(p2 / 6.0)
+        tiny = p <= jnp.finfo(F.dtype).eps * jnp.maximum(jnp.abs(q), jnp.finfo(F.dtype).tiny)
+        B = (C - q * jnp.eye(3, dtype=F.dtype)) / jnp.where(tiny, 1.0, p)
+        r = jnp.clip(0.5 * _det_poly(B), -1.0, 1.0)
+        phi = jnp.arccos(r) / 3.0
+        hi = jnp.where(tiny, q, q + 2.0 * p * jnp.cos(phi))
+        lo = jnp.where(tiny, q, q + 2.0 * p * jnp.cos(phi + 2.0 * jnp.pi / 3.0))
+    return jnp.sqrt(jnp.maximum(lo, 0.0)), jnp.sqrt(jnp.maximum(hi, 0.0))
+
+
+class DeformationExtremes(NamedTuple):
+    """The most deformed cells of a configuration (:func:`deformation_extremes`).
+
+    Attributes:
+        min_J: the smallest det F over every quadrature point (≤ 0: an inverted cell).
+        min_J_cell: the cell where it occurs (int32).
+        max_strain: the largest principal (Biot) strain ``max |λᵢ − 1|`` over every
+            quadrature point, λᵢ the principal stretches (dimensionless: 1.0 = 100 %).
+        max_strain_cell: the cell where it occurs (int32).
+    """
+
+    min_J: jax.Array
+    min_J_cell: jax.Array
+    max_strain: jax.Array
+    max_strain_cell: jax.Array
+
+
+def deformation_extremes(x: jax.Array, mesh) -> DeformationExtremes:
+    """The smallest J and the largest principal strain of positions ``x`` ``(n_nodes, dim)``
+    on ``mesh``, and the cells where they occur (from the compatible F, not F̄; traceable,
+    not differentiated)."""
+    F = jax.lax.stop_gradient(deformation_gradients(x, mesh, fbar=False))  # (c, q, d, d)
+    J = jnp.min(jax.vmap(jax.vmap(det))(F), axis=1)  # (c,)
+    lo, hi = jax.vmap(jax.vmap(principal_stretch_range))(F)  # (c, q) each
+    strain = jnp.max(jnp.maximum(hi - 1.0, 1.0 - lo), axis=1)  # (c,)
+    jc, sc = jnp.argmin(J), jnp.argmax(strain)
+    return DeformationExtremes(
+        min_J=J[jc],
+        min_J_cell=jc.astype(jnp.int32),
+        max_strain=strain[sc],
+        max_strain_cell=sc.astype(jnp.int32),
+    )

@@ -102,6 +102,13 @@ class Potential:
     psi: Psi = dataclasses.field(kw_only=True, metadata=dict(static=True))
 
     def __post_init__(self):
+        # parameter types with shared vectors (HGO fibre directions) broadcast them per cell
+        for_cells = getattr(self.params, "for_cells", None)
+        cells: Any = getattr(self.mesh, "cells", None)
+        if callable(for_cells) and is_array(cells) and len(cells.shape) == 2:
+            leaves = jax.tree_util.tree_leaves(self.params)
+            if leaves and all(is_array(a) or isinstance(a, (int, float)) for a in leaves):
+                object.__setattr__(self, "params", for_cells(int(cells.shape[0])))
         check_potential(self)
 
     def replace(self, **kw) -> Potential:

@@ -15,6 +15,8 @@ from . import elements as elements
 from . import geometry as geometry
 from .boundary import boundary_facets as boundary_facets
 from .boundary import boundary_nodes as boundary_nodes
+from .boundary import connected_parts as connected_parts
+from .boundary import facet_owners as facet_owners
 from .core import FORMULATIONS as FORMULATIONS
 from .core import Mesh as Mesh
 from .core import MeshError as MeshError
@@ -44,6 +46,8 @@ __all__ = [
     "annulus",
     "boundary_facets",
     "boundary_nodes",
+    "facet_owners",
+    "connected_parts",
     "to_quadratic",
     "with_formulation",
     "vertex_nodes",

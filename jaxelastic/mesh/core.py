@@ -220,6 +220,8 @@ def from_arrays(
     _check_topology(pts, cls)
     cls = cls.astype(np.int32)
     cls = _check_geometry(pts, cls, el, orient)
+    _check_folds(pts, cls, el)
+    _warn_coincident(pts, cls)
     dN, w, _ = geometry.rest_quantities(pts, cls, el)  # (c, q, k, d) = ∇̂N J⁻¹, (c, q)
     return Mesh(
         points=jnp.asarray(pts, dtype=dtype),
@@ -404,6 +406,93 @@ def _check_geometry(pts: np.ndarray, cls: np.ndarray, el: Element, orient: str):
     cls = cls.copy()
     cls[c] = cls[c][:, _FLIP[el.n_nodes]]
     return cls
+
+
+def _check_folds(pts: np.ndarray, cls: np.ndarray, el: Element) -> None:
+    """Refuse a tangled mesh: an interior facet whose two cells lie on the same side of it
+    (cells that overlap, e.g. a fold left by reorienting inverted cells), or a facet
+    shared by more than two cells (non-manifold)."""
+    d = pts.shape[1]
+    local = np.asarray(el.facet_nodes)[:, :d]  # (f, d) corner slots of each facet
+    n_f = local.shape[0]
+    corners = cls[:, : d + 1]
+    fac = corners[:, local]  # (c, f, d); a simplex's facet f misses exactly one corner
+    opp = np.array([sorted(set(range(d + 1)) - set(row.tolist()))[0] for row in local])
+    key_nodes = np.sort(fac, axis=2).reshape(-1, d).astype(np.int64)  # (c·f, d)
+    n = max(int(pts.shape[0]), 1)
+    if n**d < 2**63:  # one int64 per facet: a 1-D unique, ~10x faster than by rows
+        key = key_nodes[:, 0]
+        for j in range(1, d):
+            key = key * n + key_nodes[:, j]
+        _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    else:
+        _, inv, counts = np.unique(key_nodes, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    if (counts > 2).any():
+        k = int(np.flatnonzero(counts > 2)[0])
+        shared = np.flatnonzero(inv == k) // n_f
+        raise MeshError(
+            f"{int((counts > 2).sum())} facet(s) are shared by more than two cells (first: "
+            f"cells {shared.tolist()}): the mesh is not a manifold (overlapping cells)"
+        )
+    # the side of each cell's opposite corner relative to its facet, the facet's nodes in
+    # the common (sorted) order: two cells on a shared facet must have opposite sides
+    order = np.argsort(inv, kind="stable")
+    pair = counts[inv[order]] == 2
+    a, b = order[pair][0::2], order[pair][1::2]  # the two cell-facets of each shared facet
+    o_all = corners[:, opp].reshape(-1)  # (c·f,) the corner opposite each cell-facet
+    same = _side(pts, key_nodes[a], o_all[a]) == _side(pts, key_nodes[a], o_all[b])
+    if same.any():
+        i = int(np.flatnonzero(same)[0])
+        c1, c2 = int(a[i] // n_f), int(b[i] // n_f)
+        raise MeshError(
+            f"the mesh is tangled: {int(same.sum())} interior facet(s) have both their cells "
+            f"on the same side (first: cells {c1} and {c2} across nodes "
+            f"{key_nodes[a[i]].tolist()}), so cells overlap (a folded mesh: e.g. inverted cells "
+            "that reorienting cannot fix). Repair the mesh (move the misplaced nodes)"
+        )
+
+
+def _side(pts: np.ndarray, facet: np.ndarray, o: np.ndarray) -> np.ndarray:
+    """The sign of the orientation of each facet ``(m, d)`` (node indices) and point
+    ``o`` ``(m,)``: which side of the facet's line or plane the point is on."""
+    P0 = pts[facet[:, 0]]
+    e1, v = pts[facet[:, 1]] - P0, pts[o] - P0
+    if pts.shape[1] == 2:
+        return np.sign(e1[:, 0] * v[:, 1] - e1[:, 1] * v[:, 0])
+    e2 = pts[facet[:, 2]] - P0
+    n = np.stack(
+        [
+            e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1],
+            e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
+            e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0],
+        ],
+        axis=1,
+    )
+    return np.sign(np.einsum("md,md->m", n, v))
+
+
+def _warn_coincident(pts: np.ndarray, cls: np.ndarray) -> None:
+    """Warn about nodes at the same rest position that no cell joins: the mesh is split
+    there (a crack or an unmerged seam), and the parts move independently."""
+    ext = float(np.ptp(pts, axis=0).max()) if len(pts) else 0.0
+    q = np.round(pts / max(ext * 1e-12, np.finfo(float).tiny)).astype(np.int64)
+    _, first, inv, counts = np.unique(
+        q, axis=0, return_index=True, return_inverse=True, return_counts=True
+    )
+    dup = counts[inv.ravel()] > 1
+    if not dup.any():
+        return
+    i = int(np.flatnonzero(dup & (np.arange(len(pts)) != first[inv.ravel()]))[0])
+    j = int(first[inv.ravel()[i]])
+    warnings.warn(
+        f"{int(dup.sum())} nodes share their rest position with another node (e.g. nodes {j} "
+        f"and {i} at {pts[i].tolist()}): the mesh is split there and its parts are not "
+        "connected. Merge duplicated nodes (e.g. meshio's or your mesher's 'remove "
+        "duplicates') unless the split is intended (a crack)",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 def _incidence(cells: np.ndarray, n_nodes: int) -> np.ndarray:

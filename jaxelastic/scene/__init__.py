@@ -14,8 +14,9 @@ Modules, in import order: :mod:`~jaxelastic.scene.errors`, :mod:`~jaxelastic.sce
 :mod:`~jaxelastic.scene.schema` (the pydantic models), :mod:`~jaxelastic.scene.docs` (the
 generated reference), :mod:`~jaxelastic.scene.load`, :mod:`~jaxelastic.scene.problem`,
 :mod:`~jaxelastic.scene.outputs`, :mod:`~jaxelastic.scene.run`, :mod:`~jaxelastic.scene.fit`.
-Shipped scenes (``scene/data/*.toml``): ``default`` (a neo-Hookean beam released under
-gravity), ``twist``, ``cook``, ``swing2d``, ``fit_cantilever`` (:func:`shipped_scenes`).
+Shipped scenes (``scene/data/*.toml``, :func:`shipped_scenes`; a test keeps this list
+complete): ``cook``, ``default`` (a neo-Hookean beam released under gravity), ``drop``,
+``fibre_block``, ``fit_cantilever``, ``fold``, ``press``, ``swing2d``, ``twist``.
 """
 
 from .docs import reference_markdown as reference_markdown

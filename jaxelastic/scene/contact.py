@@ -7,6 +7,7 @@ A scene without ``[[obstacle]]`` and without ``[contact] self = true`` gets no c
 from __future__ import annotations
 
 import functools
+import re
 from typing import Any
 
 import jax
@@ -75,8 +76,20 @@ def build_contact(scene: Scene, pot: Potential) -> Potential:
             self_friction=cs.self_friction if cs.self_friction > 0 else None,
         )
     except ValueError as e:
-        raise scene.error(f"{'[[obstacle]]' if obs else '[contact]'}: {e}") from None
+        raise scene.error(_contact_key(str(e), bool(obs))) from None
     return pot.replace(contact=c)
+
+
+def _contact_key(msg: str, obstacles: bool) -> str:
+    """A :func:`~jaxelastic.contact.make_contact` error with the scene key it is about:
+    ``obstacle 1 (Sphere) …`` → ``[[obstacle]][1] (Sphere) …``, ``dhat …`` →
+    ``[contact].dhat …``."""
+    m = re.match(r"obstacle (\d+) ", msg)
+    if m:
+        return f"[[obstacle]][{m.group(1)}] " + msg[m.end() :]
+    if msg.startswith(("dhat", "kappa")):
+        return f"[contact].{msg}"
+    return f"{'[[obstacle]]' if obstacles else '[contact]'}: {msg}"
 
 
 @jax.jit

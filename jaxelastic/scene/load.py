@@ -167,6 +167,15 @@ def read_toml(source) -> tuple[dict, str]:
         raise SceneError(f"scene {label!r}: invalid TOML: {e}") from None
     except UnicodeDecodeError as e:
         raise SceneError(f"scene {label!r}: not a UTF-8 text file ({e})") from None
+    except RecursionError:
+        raise SceneError(_too_deep(label)) from None
+
+
+def _too_deep(label: str) -> str:
+    return (
+        f"scene {label!r}: arrays or tables nested too deeply to read (a scene needs at most "
+        "a few levels: tables, arrays of tables, vectors)"
+    )
 
 
 def load_scene(
@@ -201,5 +210,8 @@ def load_scene(
         bdir = os.path.abspath(base_dir or os.path.dirname(path))
     else:
         raise TypeError(f"load_scene() takes a path, a dict or a Scene, got {type(source)}")
-    raw = apply_overrides(raw, overrides or {})
-    return Scene(validate(raw, label, bdir), label, path, bdir)
+    try:
+        raw = apply_overrides(raw, overrides or {})
+        return Scene(validate(raw, label, bdir), label, path, bdir)
+    except RecursionError:
+        raise SceneError(_too_deep(label)) from None

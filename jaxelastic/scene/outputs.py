@@ -25,6 +25,7 @@ from .. import postprocess
 from ..io import TimeSeriesWriter, to_jsonable, write_atomic, write_json
 from ..loads import Dirichlet
 from ..mechanics.kernels import energy
+from ..mechanics.kinematics import deformation_extremes
 from ..postprocess import stress_fields
 from .errors import SceneError
 from .load import Scene
@@ -41,6 +42,7 @@ __all__ = [
     "remove_stale",
     "save_png",
     "save_npz",
+    "vtu_compression",
     "write_summary",
     "elastic_energy",
     "probe_report",
@@ -54,6 +56,10 @@ __all__ = [
     "COMPILE_EVENTS",
     "CompileClock",
     "displacement_report",
+    "deformation_report",
+    "run_warnings",
+    "LARGE_DISPLACEMENT",
+    "FLOOR_WARNING",
     "run_table",
     "fit_table",
 ]
@@ -227,11 +233,21 @@ def probe_report(built: Built, x) -> list:
 
 
 def reaction_report(built: Built, x, bc: Dirichlet) -> dict:
-    """Reaction force of the supports ``(dim,)`` and the total applied load."""
+    """Reaction force of the supports ``(dim,)``, the total applied load, and the reaction
+    of each ``[[dirichlet]]`` entry (``reactions``: key, prescribed dofs, force ``(dim,)``
+    [N]: what a testing machine reads on that support; dofs two entries share count in
+    both)."""
     pot = built.potential
     r = _reaction_jit(built.psi, x, built.mesh, built.params, bc, pot.f_ext)
     total = np.zeros(built.mesh.dim) if pot.f_ext is None else np.asarray(pot.f_ext).sum(0)
-    return dict(reaction_force=np.asarray(r).tolist(), total_applied_load=total.tolist())
+    per = []
+    for key, mask in built.supports:
+        part = Dirichlet(mask=jax.numpy.asarray(mask), values=bc.values)
+        rk = _reaction_jit(built.psi, x, built.mesh, built.params, part, pot.f_ext)
+        per.append(dict(key=key, dofs=int(mask.sum()), reaction_force=np.asarray(rk).tolist()))
+    return dict(
+        reaction_force=np.asarray(r).tolist(), total_applied_load=total.tolist(), reactions=per
+    )
 
 
 def _material_constants(params) -> dict:
@@ -297,12 +313,21 @@ def vtu_plane(built: Built) -> str:
     return getattr(built.scene.spec.material, "plane", None) or "strain"
 
 
-VTU_COMPRESSION: str | None = None
-"""The compression of the VTU files of a run (:func:`jaxelastic.io.write_vtu`): none. Twist
-at n = 29 (146k tet4 cells, 27k nodes, float64 stress fields): 0.13 s and 61 MB per file
-uncompressed vs 0.81 s and 39 MB with zlib (at any zlib level: level 1 compresses these
-floats as little and barely faster), the largest part of the outputs phase. ParaView and
-meshio read both; ``"zlib"`` here trades the time back for 1.6× smaller files."""
+VTU_COMPRESSION: str | None = "zlib"
+"""The compression of the VTU files of a run (:func:`jaxelastic.io.write_vtu`) up to
+:data:`VTU_RAW_CELLS` cells: zlib (a 336-node frame took ~455 kB uncompressed)."""
+
+VTU_RAW_CELLS = 50_000
+"""Meshes of at least this many cells write their VTU files uncompressed: twist at n = 29
+(146k tet4 cells, 27k nodes, float64 stress fields) took 0.13 s and 61 MB per file
+uncompressed vs 0.81 s and 39 MB with zlib (at any zlib level), the largest part of the
+outputs phase. ParaView and meshio read both."""
+
+
+def vtu_compression(built: Built) -> str | None:
+    """The VTU compression of a run's files: :data:`VTU_COMPRESSION` below
+    :data:`VTU_RAW_CELLS` cells, none above."""
+    return VTU_COMPRESSION if built.mesh.n_cells < VTU_RAW_CELLS else None
 
 
 def state_stress_fields(built: Built, x) -> tuple[dict, dict] | None:
@@ -330,7 +355,7 @@ def write_static_vtu(built: Built, out: str, t: float, x, *, fields=None) -> str
         built.params,
         plane=plane,
         contact=contact,
-        compression=VTU_COMPRESSION,
+        compression=vtu_compression(built),
     ) as w:
         w.write(t, x, fields=fields)
     remove_stale(out, "static", 1)
@@ -359,8 +384,11 @@ def von_mises_nodal(built: Built, x, *, fields=None):
 
 
 def _shape_colors(built: Built, x, fields=None) -> dict:
+    """The colours of a shape picture (von Mises stress) and the obstacles it shows."""
     vm = von_mises_nodal(built, x, fields=fields)
-    return {} if vm is None else dict(values=vm, values_label=VON_MISES_LABEL)
+    c = built.potential.contact
+    out = dict(obstacles=tuple(c.obstacles) if c is not None else ())
+    return out if vm is None else dict(out, values=vm, values_label=VON_MISES_LABEL)
 
 
 def static_figure(built: Built, out: str, x, *, fields=None) -> str:
@@ -492,6 +520,78 @@ def displacement_report(built: Built, x) -> dict:
     )
 
 
+_extremes_jit = jax.jit(deformation_extremes)
+
+
+def deformation_report(built: Built, x) -> dict:
+    """The most deformed cells of positions ``x`` ``(n_nodes, dim)``
+    (:func:`~jaxelastic.mechanics.kinematics.deformation_extremes`): ``min_J`` (the
+    smallest det F; ≤ 0 is an inverted cell), its cell and the cell's rest centroid, and
+    ``max_strain`` (the largest principal strain max|λᵢ − 1|, 1.0 = 100 %), its cell
+    and centroid."""
+    ext = _extremes_jit(x, built.mesh)
+    X, cells = np.asarray(built.mesh.points), np.asarray(built.mesh.cells)
+    jc, sc = int(ext.min_J_cell), int(ext.max_strain_cell)
+    return dict(
+        min_J=float(ext.min_J),
+        min_J_cell=jc,
+        min_J_at=X[cells[jc]].mean(0).tolist(),
+        max_strain=float(ext.max_strain),
+        max_strain_cell=sc,
+        max_strain_at=X[cells[sc]].mean(0).tolist(),
+    )
+
+
+LARGE_DISPLACEMENT = 1.0
+"""A run whose largest nodal displacement exceeds this multiple of the rest bounding-box
+diagonal gets a warning (:func:`run_warnings`): wrong units or a missing support are the
+usual causes."""
+
+
+FLOOR_WARNING = 10.0
+"""A run whose solves stopped at the round-off floor warns once the relative residual
+reached exceeds this multiple of the requested ``[solver] rtol`` (closer, the table's
+``relative`` figure says it)."""
+
+
+def run_warnings(summary: dict) -> list[str]:
+    """The warnings of a finished run (``summary["warnings"]``, printed by the CLI): an
+    inverted cell (J ≤ 0) at any step or increment of a material defined there (one
+    undefined there fails the solve instead), a displacement beyond
+    :data:`LARGE_DISPLACEMENT` times the body's diagonal, solves stopped at the residual's
+    round-off floor more than :data:`FLOOR_WARNING` times above the requested rtol."""
+    out = []
+    part = summary.get("dynamic") or summary.get("static") or {}
+    d = part.get("deformation") or {}
+    J = d.get("min_J_run", d.get("min_J"))
+    if J is not None and not J > 0:
+        when = f" at t = {_g(d['min_J_run_t'])} s" if "min_J_run_t" in d else ""
+        cell = d.get("min_J_run_cell", d.get("min_J_cell"))
+        out.append(
+            f"inverted cells: J = {_g(J, 3)} in cell {cell}{when} (the material is defined "
+            "at J <= 0, so the solve went on; a real body does not invert): check the units "
+            "of E and the density (Pa, kg/m^3), of the loads (N, Pa) and of the mesh (m), "
+            "and the load or time step size"
+        )
+    rel = part.get("max_displacement_relative")
+    if rel is not None and rel > LARGE_DISPLACEMENT:
+        out.append(
+            f"the largest displacement is {_g(100 * rel, 3)} % of the body's diagonal (above "
+            f"{_g(100 * LARGE_DISPLACEMENT)} %): check the units of E (Pa) and of the loads "
+            "and the mesh, and that the supports ([[dirichlet]], obstacles) hold the body"
+        )
+    n_floor = part.get("floor_limited_solves", 0)
+    rtol = (summary.get("solver") or {}).get("rtol", 0.0) or 0.0
+    worst = part.get("achieved_rtol_max") or 0.0
+    if n_floor and worst > FLOOR_WARNING * rtol:
+        out.append(
+            f"{n_floor} solve(s) stopped at the residual's round-off floor above the requested "
+            f"tolerance (largest relative residual {_g(part.get('achieved_rtol_max'), 3)}): "
+            "[solver] rtol is below what float arithmetic resolves here"
+        )
+    return out
+
+
 def _g(v, digits: int = 4) -> str:
     """A number for the table: ``digits`` significant digits, no trailing zeros."""
     if v is None:
@@ -576,14 +676,28 @@ def _partition_row(p: dict) -> str:
 
 
 def _reaction_row(r: dict, unit: str = "N") -> str | None:
-    """Reaction vs applied load per direction where either is non-zero."""
+    """Reaction vs applied load per direction where either is non-zero, then the reaction
+    of each ``[[dirichlet]]`` entry (where there are several)."""
+    per = r.get("reactions") or []
+    big = max((float(np.abs(e["reaction_force"]).max()) for e in per), default=0.0)
+    text = _total_reaction_row(r, unit, big)
+    if text is None or len(per) < 2:
+        return text
+    for e in per:
+        text += f"\n{e['key']} ({e['dofs']} dofs): {_vec(e['reaction_force'])} {unit}"
+    return text
+
+
+def _total_reaction_row(r: dict, unit: str = "N", scale_min: float = 0.0) -> str | None:
+    """The total reaction vs the applied load; components below 1e-9 of the largest force
+    (``scale_min``: the largest reaction of one support) count as zero."""
     R = np.asarray(r.get("reaction_force", []), float)
     F = np.asarray(r.get("total_applied_load", []), float)
     if R.size == 0:
         return None
     if F.size != R.size:
         F = np.zeros_like(R)
-    scale = max(float(np.abs(R).max()), float(np.abs(F).max()), 1e-300)
+    scale = max(float(np.abs(R).max()), float(np.abs(F).max()), scale_min, 1e-300)
     parts = []
     for a in range(R.size):
         if max(abs(R[a]), abs(F[a])) <= 1e-9 * scale:
@@ -596,7 +710,7 @@ def _reaction_row(r: dict, unit: str = "N") -> str | None:
             )
         else:
             parts.append(f"{name}: {_g(R[a])} {unit} (no applied load)")
-    return "\n".join(parts) if parts else f"0 {unit}"
+    return "\n".join(parts) if parts else f"0 {unit} in total"
 
 
 def _u_row(d: dict) -> str:
@@ -607,6 +721,35 @@ def _u_row(d: dict) -> str:
     rel = d.get("max_displacement_relative")
     if rel is not None:
         text += f" ({_g(100 * rel, 3)} % of the body diagonal)"
+    return text
+
+
+def _relative(part: dict) -> str:
+    """The largest relative residual of the run's solves, marked where a solve stopped at
+    the round-off floor above the requested tolerance."""
+    r = part.get("achieved_rtol_max")
+    if r is None:
+        return ""
+    text = f" (relative {_g(r, 2)}"
+    n = part.get("floor_limited_solves", 0)
+    return text + (f", {n} at the round-off floor)" if n else ")")
+
+
+def _deformation_row(d: dict, t_end=None) -> str:
+    """Smallest J and largest principal strain, with their cells (and, for a dynamic run,
+    the smallest J of any step)."""
+    text = (
+        f"{_g(d['min_J'], 4)} in cell {d['min_J_cell']} at {_vec(d['min_J_at'])}; largest "
+        f"strain {_g(100 * d['max_strain'], 3)} % in cell {d['max_strain_cell']}"
+    )
+    if t_end is not None:
+        text += f"\n(at t = {_g(t_end)} s)"
+    if "min_J_run" in d:
+        cell = f" in cell {d['min_J_run_cell']}" if "min_J_run_cell" in d else ""
+        text += (
+            f"\nover the run: min J {_g(d['min_J_run'], 4)}{cell} at t = {_g(d['min_J_run_t'])} "
+            f"s, largest strain {_g(100 * d['max_strain_run'], 3)} %"
+        )
     return text
 
 
@@ -649,14 +792,20 @@ def run_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
     iterations, largest displacement, reaction vs applied load, energy, time (compile and
     run when ``compile_s`` is known) and the files written.
 
+    Long because: one table built row by row in the order it is printed.
+
     Args:
         s: the run's summary (as :func:`~jaxelastic.scene.run.run_scene` returns it).
         compile_s: seconds spent compiling (:class:`CompileClock`), or None.
         wall_s: wall time of the whole command [s] (default: the summary's total).
     """
     kind = "dynamic" if "dynamic" in s else "static"
+    found = s.get("warnings") or []
     head = f"{s['scene']['name']}: {s['status']} ({kind})"
-    rows = [("mesh", _mesh_row(s["mesh"])), ("material", _material_row(s))]
+    if found:
+        head += f" with {len(found)} WARNING{'S' if len(found) > 1 else ''} (below)"
+    rows = [(f"WARNING {i + 1}" if len(found) > 1 else "WARNING", w) for i, w in enumerate(found)]
+    rows += [("mesh", _mesh_row(s["mesh"])), ("material", _material_row(s))]
     rows.append(("solver", _solver_row(s)))
     if s.get("partition"):
         rows.append(("devices", _partition_row(s["partition"])))
@@ -668,11 +817,13 @@ def run_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
                 "steps",
                 f"{dy['steps']} time steps to t = {_g(dy['t_end'])} s, {settled}\n"
                 f"{dy['newton_steps_total']} Newton iterations, "
-                f"{dy['linear_iterations_total']} linear iterations",
+                f"{dy['linear_iterations_total']} linear iterations" + _relative(dy),
             )
         )
         if "max_displacement" in dy:
             rows.append(("max |u|", _u_row(dy) + f"\n(at t = {_g(dy['t_end'])} s)"))
+        if dy.get("deformation"):
+            rows.append(("min J", _deformation_row(dy["deformation"], dy.get("t_end"))))
         tip = dy["tip"]
         if tip.get("source") != "probe 0":  # else the probe row says it
             rows.append(("tip u", f"{_vec(tip['displacement'])} m at node {tip['node']}"))
@@ -704,13 +855,16 @@ def run_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
             (
                 "iterations",
                 f"{n_inc} load step{'s' if n_inc > 1 else ''}, {st['newton_steps']} Newton, "
-                f"{st['linear_iterations']} linear; final residual {_g(st['final_residual'], 2)}",
+                f"{st['linear_iterations']} linear; final residual {_g(st['final_residual'], 2)}"
+                + _relative(st),
             )
         )
         if "max_displacement_node" in st:
             rows.append(("max |u|", _u_row(st)))
         else:
             rows.append(("max |u|", f"{_g(st.get('max_displacement'))} m"))
+        if st.get("deformation"):
+            rows.append(("min J", _deformation_row(st["deformation"])))
         row = _reaction_row(st)
         if row:
             rows.append(("reaction", row))

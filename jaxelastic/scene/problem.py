@@ -100,6 +100,8 @@ class Built(NamedTuple):
         probes: ``(node, point)`` per ``[output].probes`` entry (nearest node).
         tip: node whose displacement is plotted over time (first probe, or the node
             farthest from the Dirichlet nodes).
+        supports: ``(key, mask)`` per ``[[dirichlet]]`` entry, the mask ``(n_nodes, dim)``
+            bool of the dofs it prescribes (the reaction of each support is reported).
     """
 
     scene: Scene
@@ -119,6 +121,7 @@ class Built(NamedTuple):
     tip: int
     shard: Sharded | None = None
     cavities: Cavities | None = None  # [[cavity]]: volumes per load step (jaxelastic.scene.cavity)
+    supports: tuple = ()
 
 
 class Sharded(NamedTuple):
@@ -726,7 +729,30 @@ def _initial_velocity(scene: Scene, X: np.ndarray, bc: Dirichlet, dtype) -> jax.
             )
     else:
         v0 = np.broadcast_to(np.asarray(iv, dtype=float), X.shape).copy()
-    return jnp.asarray(np.where(np.asarray(bc.mask), 0.0, v0), dtype)
+    v0 = np.where(np.asarray(bc.mask), 0.0, v0)
+    _check_speed(scene, key, X, v0)
+    return jnp.asarray(v0, dtype)
+
+
+SPEED_MAX_BODIES = 1e6
+"""An initial velocity that would carry a node this many body sizes in the scene's
+duration is refused (it overflows the energies long before; wrong units are the usual
+cause)."""
+
+
+def _check_speed(scene: Scene, key: str, X: np.ndarray, v0: np.ndarray) -> None:
+    """Refuse an initial velocity whose kinetic energy overflows or that would move a node
+    by more than :data:`SPEED_MAX_BODIES` body sizes within the duration, naming the key."""
+    size = float(np.linalg.norm(np.ptp(X, axis=0))) or 1.0
+    duration = float(getattr(scene.spec.integrator, "duration", 0.0) or 0.0)
+    speed = float(np.max(np.hypot.reduce(v0, axis=1), initial=0.0))  # (no overflow)
+    if not np.isfinite(speed) or speed * duration > SPEED_MAX_BODIES * size:
+        raise scene.error(
+            f"{key}: a speed of {speed:.3g} m/s would carry the body {speed * duration:.3g} m "
+            f"in the {duration:g} s of the run, more than {SPEED_MAX_BODIES:.0e} times its "
+            f"size ({size:.3g} m; its kinetic energy overflows float64 before): check the "
+            "units (m/s)"
+        )
 
 
 def _tip_node(mesh: Mesh, bc: Dirichlet) -> int:
@@ -940,4 +966,18 @@ def build(scene) -> Built:
         tip=tip,
         shard=sharded,
         cavities=cavities,
+        supports=_supports(scene, mesh, md),
     )
+
+
+def _supports(scene: Scene, mesh: Mesh, md) -> tuple:
+    """``(key, mask (n_nodes, dim))`` of each ``[[dirichlet]]`` entry's prescribed dofs."""
+    out = []
+    for i, d in enumerate(scene.spec.dirichlet):
+        key = f"[dirichlet][{i}]"
+        idx = select_nodes(scene, f"{key}.nodes", d.nodes, mesh, md)
+        mask = np.zeros(mesh.points.shape, bool)
+        comps = range(mesh.dim) if d.components is None else [axis_index(a) for a in d.components]
+        mask[np.ix_(np.asarray(idx), np.asarray(list(comps), dtype=np.int64))] = True
+        out.append((key, mask))
+    return tuple(out)

@@ -22,14 +22,14 @@ from .. import dynamics
 from ..io import TimeSeriesWriter
 from ..loads import Dirichlet
 from ..parallel.distributed import host_array
-from ..solvers import Solution, SolveError, solve_incremental
+from ..solvers import Solution, SolveError, SolveWarning, solve_incremental
 from . import interrupt, memory
 from .cavity import cavity_report, pressure_volume_figure, volume_controlled_solve
 from .contact import contact_report, min_gap
 from .interrupt import Interrupted
 from .load import load_scene
 from .outputs import (
-    VTU_COMPRESSION,
+    deformation_report,
     displacement_report,
     dynamic_figures,
     elastic_energy,
@@ -41,9 +41,11 @@ from .outputs import (
     remove_stale,
     remove_temporaries,
     run_header,
+    run_warnings,
     save_png,
     state_stress_fields,
     static_figure,
+    vtu_compression,
     vtu_plane,
     write_static_vtu,
 )
@@ -144,6 +146,10 @@ def static_solve(
             wall_time=h["wall_time"],
             load_factor=h["s"],
             accepted=h["accepted"],
+            min_J=h["min_J"],
+            max_strain=h["max_strain"],
+            achieved_rtol=h["achieved_rtol"],
+            floor_limited=h["floor_limited"],
         )
         for h in sol.stats["increments"]
     ]
@@ -185,7 +191,32 @@ def _static_report(built: Built, x, stats: list[dict], sol: Solution) -> dict:
         elastic_energy=elastic_energy(built, x),
         **displacement_report(built, x),
         **reaction_report(built, x, built.bc),
+        **_solve_quality(stats),
+        deformation=deformation_report(built, x),
     )
+
+
+def _solve_quality(records: list[dict]) -> dict:
+    """How many accepted solves stopped at the round-off floor above the requested
+    tolerance, and the largest relative residual reached (over ``records``)."""
+    ok = [r for r in records if r.get("accepted", r.get("status") == "SUCCESS")]
+    return dict(
+        floor_limited_solves=sum(bool(r.get("floor_limited")) for r in ok),
+        achieved_rtol_max=max((r["achieved_rtol"] for r in ok), default=None),
+    )
+
+
+def _run_deformation(built: Built, x, records: list[dict]) -> dict:
+    """:func:`~jaxelastic.scene.outputs.deformation_report` of the final state, and the
+    smallest J of any time step (``min_J_run``, its time and cell)."""
+    rep = deformation_report(built, x)
+    if records:
+        i = int(np.argmin([r["min_J"] for r in records]))
+        rep.update(min_J_run=records[i]["min_J"], min_J_run_t=records[i]["t"])
+        if built.shard is None:  # (a sharded run numbers its cells in the padded layout)
+            rep["min_J_run_cell"] = records[i]["min_J_cell"]
+        rep["max_strain_run"] = max(r["max_strain"] for r in records)
+    return rep
 
 
 def _run_static(built: Built, out: str, progress: bool, summary: dict) -> None:
@@ -327,7 +358,7 @@ def _simulate(built: Built, out: str, progress: bool, summary: dict):
     if built.scene.spec.output.vtu:
         writer = TimeSeriesWriter(
             out, "dynamic", built.mesh, built.psi, built.params, plane=vtu_plane(built),
-            contact=built.potential.contact, compression=VTU_COMPRESSION,
+            contact=built.potential.contact, compression=vtu_compression(built),
         )  # fmt: skip
     mon = _Monitor(built, writer, n_steps)
     log(progress, f"{n_steps} time steps of h = {integ.h:g} s (the first includes compilation)")
@@ -444,6 +475,8 @@ def _dynamic_summary(built: Built, mon: _Monitor, per: dict, summary: dict) -> N
         linear_iterations_total=int(sum(per["linear_iterations"])),
         final_residual=per["residual"][-1] if mon.n else None,
         **displacement_report(built, mon.state.x),
+        **_solve_quality(mon.records),
+        deformation=_run_deformation(built, mon.state.x, mon.records),
         tip=dict(
             node=built.tip,
             rest_position=X[built.tip].tolist(),
@@ -580,7 +613,10 @@ def run_scene(scene, out_dir, progress: bool = True) -> dict:
         raise
     except KeyboardInterrupt as e:
         raise _interrupted(e, out, path, summary, t_start) from None
-    return finish_summary(path, summary, t_start, status="ok", interrupted=False)
+    found = run_warnings(summary)
+    for w in found:
+        warnings.warn(f"scene {scene.name!r}: {w}", SolveWarning, stacklevel=2)
+    return finish_summary(path, summary, t_start, status="ok", interrupted=False, warnings=found)
 
 
 def _interrupted(e: KeyboardInterrupt, out: str, path: str, summary: dict, t_start: float):

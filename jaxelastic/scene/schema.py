@@ -36,7 +36,16 @@ from pydantic import (
     model_validator,
 )
 
-from ..materials import BUILTIN, FAMILIES, FAMILY_KEYS, FAMILY_POSITIVE_KEYS, MODEL_NAMES
+from ..dynamics import H_MIN
+from ..materials import (
+    BUILTIN,
+    FAMILIES,
+    FAMILY_KEYS,
+    FAMILY_POSITIVE_KEYS,
+    MODEL_NAMES,
+    MaterialParameterError,
+    check_family,
+)
 from ..mesh import FORMULATIONS
 from .callables import CallableSpecError, import_callable, n_positional
 from .errors import SceneError, fail, from_validation_error, type_name
@@ -523,6 +532,10 @@ class MaterialSpec(Table):
                 raise fail(f"{{at}}.{k} must be > 0, got {v!r}")
             if k in ("a01", "a02") and _is_vector(v) and (len(v) not in (2, 3) or not any(v)):
                 raise fail(f"{{at}}.{k} must be a nonzero vector of 2 or 3 numbers, got {list(v)}")
+        try:  # the one validation of the family's constants (also used by je.solve)
+            check_family(self.model, {k: getattr(self, k) for k in keys})
+        except MaterialParameterError as e:
+            raise fail(f"{{at}}.{e.key} {e.reason}") from None
         if self.k1 is not None and self.k1 < 0:
             raise fail(f"{{at}}.k1 must be >= 0, got {self.k1!r}")
         kd = self.kappa_dispersion
@@ -922,6 +935,11 @@ class DynamicIntegrator(Table):
 
     @model_validator(mode="after")
     def _duration(self):
+        if self.h < H_MIN:
+            raise fail(
+                f"{{at}}.h = {self.h!r} s is below {H_MIN:g} s: the inertia term m/h^2 "
+                "overflows float64"
+            )
         if self.duration < self.h * (1 - 1e-12):
             raise fail(f"{{at}}.duration must be >= h = {self.h!r}, got {self.duration!r}")
         steps = self.duration / self.h
@@ -1204,10 +1222,37 @@ class FitSpec(Table):
 # ----------------------------------------------------------------------------------------
 
 
+def _scene_name(v: str) -> str:
+    """A scene name is a name: it becomes the output directory ``jaxelastic-out/<name>``
+    without ``--out``, so no path separator, no ``.``/``..``, no leading dot or ``~``, no
+    control characters, at most 100 characters."""
+    bad = (
+        not v.strip()
+        or len(v) > 100
+        or any(c in v for c in "/\\:")
+        or v.startswith((".", "~"))
+        or any(ord(c) < 32 or ord(c) == 127 for c in v)
+    )
+    if bad:
+        raise fail(
+            f"{{at}} must be a name, not a path: 1 to 100 characters without '/', '\\', ':', "
+            f"control characters or a leading '.' or '~', got {v!r} (it names the output "
+            "directory jaxelastic-out/<name>; use --out to write elsewhere)"
+        )
+    return v
+
+
+SceneName = Annotated[str, Strict(), AfterValidator(_scene_name)]
+"""The scene's ``name``: a file name (:func:`_scene_name`)."""
+
+
 class SceneSpec(Table):
     """A jaxelastic scene file."""
 
-    name: Str = Field(default="scene", description="label (output directory name, plot titles)")
+    name: SceneName = Field(
+        default="scene",
+        description="label (output directory name, plot titles): a name, not a path",
+    )
     description: Str = Field(default="", description="one line shown by `jaxelastic scenes`")
     mesh: MeshSpec = Field(description="the mesh")
     material: MaterialSpec = Field(description="the material")

@@ -39,6 +39,7 @@ from .newton import NewtonState as NewtonState
 from .newton import solved_potential as solved_potential
 from .results import Solution as Solution
 from .results import SolveError as SolveError
+from .results import SolveWarning as SolveWarning
 from .results import Status as Status
 from .volume_control import cavity_compliance as cavity_compliance
 from .volume_control import solve_volume_controlled as solve_volume_controlled
@@ -76,6 +77,7 @@ __all__ = [
     "solved_potential",
     "Solution",
     "SolveError",
+    "SolveWarning",
     "Status",
 ]
 

@@ -46,6 +46,10 @@ def _record(s: float, res: Solution) -> dict:
         steps=int(st["steps"]),
         linear_iterations=int(st["linear_iterations"]),
         residual=float(st["residual"]),
+        min_J=float(st["min_J"]),
+        max_strain=float(st["max_strain"]),
+        achieved_rtol=float(st["achieved_rtol"]),
+        floor_limited=bool(st.get("floor_limited", False)),
         wall_time=float(st["wall_time"]),
         accepted=bool(res.ok),
     )

@@ -20,18 +20,18 @@ from jax.core import Tracer
 
 from ..cache import ensure_persistent_cache
 from ..loads import Dirichlet
-from ..materials import Lame, check_lame
+from ..materials import check_material
 from ..mechanics.checks import check_psi
 from ..mechanics.potential import Potential, is_array
 from ..mechanics.pressure import check_closed
-from ..mesh import Mesh
+from ..mesh import Mesh, connected_parts
 from ..parallel.distributed import host_array
 from .adjoint import ImplicitAdjoint, differentiable_minimize
 from .host import rigid_body_modes
 from .linear import LinearState, init_linear, resolve
 from .newton import Newton, is_quadratic
 from .newton import terms as newton_terms
-from .results import Solution, SolveError, Status
+from .results import Solution, SolveError, Status, warn_solution
 
 __all__ = ["solve", "PreparedSolver", "prepare_solver", "bind_solver", "is_traced"]
 
@@ -181,8 +181,7 @@ def _check_inputs(pot: Potential, bc: Dirichlet, x0):
             f"the mesh (je.loads.fix) or cast the values to {dt}"
         )
     if not is_traced(pot.params):
-        if isinstance(pot.params, Lame):
-            check_lame(pot.params, int(shape[1]))
+        check_material(pot.params, int(shape[1]))
         mesh = pot.mesh
         check_psi(
             pot.psi, int(shape[1]), mesh.points.dtype, pot.params, mesh.n_cells, where="je.solve"
@@ -194,8 +193,9 @@ def _check_inputs(pot: Potential, bc: Dirichlet, x0):
     return jnp.asarray(x0, pot.mesh.points.dtype)
 
 
-def _free_rigid_motions(pot: Potential, bc: Dirichlet) -> list[str]:
-    """The infinitesimal rigid-body motions of the rest shape that ``bc`` leaves free.
+def _free_rigid_motions(pot: Potential, bc: Dirichlet, part=None) -> list[str]:
+    """The infinitesimal rigid-body motions of the rest shape that ``bc`` leaves free
+    (of the nodes where ``part`` ``(n_nodes,)`` is True, if given).
 
     A static potential (no mass term) is invariant under them, so its Hessian is singular
     and the solve has no unique answer; under a load it does not converge at all.
@@ -205,6 +205,8 @@ def _free_rigid_motions(pot: Potential, bc: Dirichlet) -> list[str]:
     mask = host_array(bc.mask).astype(bool)
     inc = host_array(pot.mesh.incidence)
     in_cells = inc[:, 0] < pot.mesh.cells.size  # not the padding of a sharded mesh (je.shard)
+    if part is not None:
+        in_cells = in_cells & part
     X, mask = X[in_cells], mask[in_cells].reshape(-1)
     R = rigid_body_modes(X)  # (n·d, m): translations then rotations
     m = R.shape[1]
@@ -244,6 +246,8 @@ def _check_constrained(pot: Potential, bc: Dirichlet) -> None:
     if pot.contact is not None:
         return  # obstacles may hold the body (a singular Hessian then fails the solve)
     free = _free_rigid_motions(pot, bc)
+    if not free:
+        _check_parts_held(pot, bc)
     if free:
         raise ValueError(
             f"the Dirichlet conditions leave {len(free)} rigid-body motion(s) free "
@@ -252,6 +256,29 @@ def _check_constrained(pot: Potential, bc: Dirichlet) -> None:
             "(e.g. je.loads.fix(mesh, nodes)), or solve dynamics (a Potential with mass), "
             "where a free body is valid"
         )
+
+
+def _check_parts_held(pot: Potential, bc: Dirichlet) -> None:
+    """Refuse a static solve where a part of the mesh that no cell connects to the rest
+    (split by duplicated nodes, or a separate body) is left free by the Dirichlet data:
+    the rigid-motion test of the whole body misses it."""
+    if getattr(pot.mesh, "halo", None) is not None:
+        return  # a sharded mesh: checked on the natural mesh before it was split
+    count, label = connected_parts(pot.mesh)
+    if count < 2:
+        return
+    for k in range(count):
+        part = label == k
+        free = _free_rigid_motions(pot, bc, part)
+        if free:
+            nodes = np.flatnonzero(part)
+            raise ValueError(
+                f"the mesh has {count} parts that no cell connects, and the Dirichlet "
+                f"conditions leave part {k} ({nodes.size} nodes, e.g. nodes "
+                f"{nodes[:5].tolist()}) free to move ({', '.join(free)}): a static solve has "
+                "no unique solution. Merge duplicated nodes (the parts may be split by "
+                "nodes at the same position) or fix each part"
+            )
 
 
 def solve(
@@ -353,4 +380,5 @@ def solve(
                 f"reduces it; to solve in float64, {how})"
             )
         raise SolveError(res, what)
+    warn_solution(res)
     return res

@@ -15,7 +15,17 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-__all__ = ["Status", "Solution", "SolveError", "REASONS", "ADVICE", "RUNNING"]
+__all__ = [
+    "Status",
+    "Solution",
+    "SolveError",
+    "SolveWarning",
+    "REASONS",
+    "ADVICE",
+    "RUNNING",
+    "solution_warnings",
+    "warn_solution",
+]
 
 
 class Status(enum.IntEnum):
@@ -75,8 +85,13 @@ class Solution(NamedTuple):
             ``negative_curvature`` (Newton steps whose linear solve met it),
             ``projected`` (steps whose host matrix was PSD-projected),
             ``residual_floor`` (the round-off floor of the residual at the last iterate
-            [force]: a residual at or below it counts as converged), ``wall_time`` [s]
-            (NaN inside jit). Linear: ``iterations``, ``residual``.
+            [force]: a residual at or below it counts as converged),
+            ``residual_reference`` [force], ``tolerance`` (max(atol, rtol·reference)
+            [force]), ``achieved_rtol`` (residual / reference), ``floor_limited``
+            (SUCCESS at the round-off floor above ``tolerance``), ``min_J`` and
+            ``min_J_cell`` (the smallest det F and its cell), ``max_strain`` and
+            ``max_strain_cell`` (the largest principal strain max|λᵢ − 1| and its cell),
+            ``wall_time`` [s] (NaN inside jit). Linear: ``iterations``, ``residual``.
     """
 
     x: Any
@@ -117,6 +132,8 @@ class SolveError(RuntimeError):
             detail.append(f"after {int(stats['iterations'])} iterations")
         if "residual" in stats:
             detail.append(f"residual {float(stats['residual']):.3e}")
+        if st == Status.INVERTED and "min_J" in stats:
+            detail.append(f"min J {float(stats['min_J']):.3g} in cell {int(stats['min_J_cell'])}")
         tail = f" ({', '.join(detail)})" if detail else ""
         advice = ADVICE[st]
         super().__init__(
@@ -125,3 +142,57 @@ class SolveError(RuntimeError):
         )
         self.solution = solution
         self.status = st
+
+
+class SolveWarning(UserWarning):
+    """A solve succeeded but its answer needs a look: an inverted cell of a ψ that is
+    defined there, or a requested tolerance below the residual's round-off floor."""
+
+
+def solution_warnings(sol: Solution) -> list[str]:
+    """What is suspect about a successful, concrete, unbatched Newton solution: inverted
+    cells (``stats["min_J"] ≤ 0``: only possible on a ψ defined there, else the status is
+    INVERTED) and a SUCCESS at the round-off floor above the requested tolerance
+    (``stats["floor_limited"]``). Plain sentences with the numbers; empty when nothing is.
+    """
+    st = sol.stats
+    out = []
+    if int(sol.status) != Status.SUCCESS:
+        return out
+    if "min_J" in st and not float(st["min_J"]) > 0:
+        out.append(
+            f"inverted cells: min J = {float(st['min_J']):.3g} in cell {int(st['min_J_cell'])} "
+            f"(largest strain {100 * float(st['max_strain']):.3g} % in cell "
+            f"{int(st['max_strain_cell'])}): the material is defined there, but an inverted "
+            "cell is rarely physical: check the units of the material constants and loads, "
+            "the supports and the load or time step size"
+        )
+    if "floor_limited" in st and bool(st["floor_limited"]):
+        out.append(
+            f"the requested tolerance {float(st['tolerance']):.3g} is below the residual's "
+            f"round-off floor {float(st['residual_floor']):.3g}: converged to the floor, a "
+            f"relative residual of {float(st['achieved_rtol']):.3g} (stats['achieved_rtol'])"
+        )
+    return out
+
+
+_WARNING_TEXT = {
+    "inverted": "the solution has inverted cells (J <= 0) on a material defined there: see "
+    "stats['min_J'] and stats['min_J_cell']; check units, supports and load size",
+    "floor": "the requested rtol/atol is below the residual's round-off floor: the solve "
+    "stopped at the floor (SUCCESS), see stats['achieved_rtol'] and stats['residual_floor']",
+}
+
+
+def warn_solution(sol: Solution, what: str = "je.solve", stacklevel: int = 3) -> None:
+    """Emit a :class:`SolveWarning` for each of :func:`solution_warnings` (fixed texts, so
+    Python shows each once per calling line; the numbers are in ``sol.stats``)."""
+    import warnings
+
+    st = sol.stats
+    if int(sol.status) != Status.SUCCESS:
+        return
+    if "min_J" in st and not float(st["min_J"]) > 0:
+        warnings.warn(f"{what}: {_WARNING_TEXT['inverted']}", SolveWarning, stacklevel=stacklevel)
+    if "floor_limited" in st and bool(st["floor_limited"]):
+        warnings.warn(f"{what}: {_WARNING_TEXT['floor']}", SolveWarning, stacklevel=stacklevel)

@@ -213,7 +213,7 @@ def _traced_minimize(s: Newton, lstate: LinearState, pot: Potential, bc: Dirichl
         lambda st: step(s, lstate, pot, bc, st, length),
         init(s, pot, bc, x0),
     )
-    return solution(pot, state)
+    return solution(pot, state, s)
 
 
 solve_jit = jax.jit(_traced_minimize, static_argnums=0)
@@ -281,7 +281,7 @@ def _loop_finish(s: Newton, pot, bc, state: NewtonState, length, Ke, rhs, tol, b
     return finish(s, p, bc, state, length, Prepared(system, dD, rhs, tol, bn), lin)
 
 
-_solution_jit = jax.jit(solution)
+_solution_jit = jax.jit(solution, static_argnums=2)
 
 
 @functools.partial(jax.jit, static_argnames="nnz_upper")
@@ -345,4 +345,4 @@ def _python_loop(s: Newton, lstate, pot: Potential, bc: Dirichlet, x0) -> Soluti
         del Ke, lin, ph
         if big:
             release_free_memory()
-    return _solution_jit(pot, state)
+    return _solution_jit(pot, state, s)

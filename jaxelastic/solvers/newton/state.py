@@ -9,13 +9,22 @@ import jax
 import jax.numpy as jnp
 
 from ...loads import Dirichlet
+from ...mechanics.kinematics import deformation_extremes
 from ...mechanics.potential import Potential
 from ..results import RUNNING, Solution, Status
 from . import terms
 from .iteration import min_J, norm, status_of, value_and_grad
 from .settings import Newton
 
-__all__ = ["NewtonState", "init", "terminate", "solution", "body_length"]
+__all__ = [
+    "NewtonState",
+    "init",
+    "terminate",
+    "solution",
+    "body_length",
+    "defined_inverted",
+    "FLOOR_REFERENCE",
+]
 
 
 class NewtonState(NamedTuple):
@@ -95,12 +104,42 @@ def body_length(pot: Potential) -> jax.Array:
     return jnp.sqrt(jnp.sum((jnp.max(X, axis=0) - jnp.min(X, axis=0)) ** 2))
 
 
-def solution(pot: Potential, state: NewtonState) -> Solution:
-    """The :class:`~jaxelastic.solvers.results.Solution` of a finished state."""
+FLOOR_REFERENCE = 100.0
+"""``stats["floor_limited"]`` is only set where the residual's reference force exceeds
+this multiple of the round-off floor: below it the solve had nothing to resolve (an
+unloaded or freely moving body), and no relative tolerance was meaningful."""
+
+
+def defined_inverted(psi) -> bool:
+    """Whether ψ is marked finite and meaningful at J ≤ 0 (``psi.defined_inverted = True``:
+    the built-in linear, StVK, corotated, fixed corotated, ARAP and stable neo-Hookean
+    laws; static)."""
+    return getattr(psi, "defined_inverted", False) is True
+
+
+def solution(pot: Potential, state: NewtonState, s: Newton | None = None) -> Solution:
+    """The :class:`~jaxelastic.solvers.results.Solution` of a finished state.
+
+    Besides the loop's counters, ``stats`` holds the state's most deformed cells
+    (:func:`~jaxelastic.mechanics.kinematics.deformation_extremes`: ``min_J``,
+    ``min_J_cell``, ``max_strain``, ``max_strain_cell``) and, with the settings ``s``,
+    the tolerance the residual had to meet (``tolerance`` = max(atol, rtol·ref)
+    [force]), the residual's reference ``residual_reference`` [force], the relative
+    residual reached (``achieved_rtol`` = residual / ref) and ``floor_limited`` (True:
+    SUCCESS at the round-off floor above the requested tolerance). A SUCCESS whose
+    state has a cell at J ≤ 0 becomes ``Status.INVERTED`` unless ψ is
+    :func:`defined_inverted`.
+    """
+    res = state.hist[state.k]
+    ext = deformation_extremes(state.x, pot.mesh)
+    status = state.status
+    if not defined_inverted(pot.psi):
+        inverted = (status == Status.SUCCESS) & ~(ext.min_J > 0)
+        status = jnp.where(inverted, Status.INVERTED, status).astype(jnp.int32)
     stats = dict(
         steps=state.k,
         linear_iterations=jnp.sum(state.lin_hist),
-        residual=state.hist[state.k],
+        residual=res,
         energy=state.energy,
         residual_history=state.hist,
         linear_history=state.lin_hist,
@@ -109,7 +148,19 @@ def solution(pot: Potential, state: NewtonState) -> Solution:
         negative_curvature=state.neg,
         projected=state.proj,
         residual_floor=state.floor,
+        residual_reference=state.ref,
+        achieved_rtol=res / jnp.maximum(state.ref, jnp.finfo(state.ref.dtype).tiny),
+        min_J=ext.min_J,
+        min_J_cell=ext.min_J_cell,
+        max_strain=ext.max_strain,
+        max_strain_cell=ext.max_strain_cell,
         wall_time=jnp.asarray(jnp.nan, state.x.dtype),
     )
+    if s is not None:
+        tol = jnp.maximum(jnp.asarray(s.atol, res.dtype), s.rtol * state.ref)
+        stats["tolerance"] = tol
+        # (a reference force itself near round-off, e.g. an unloaded body, asks nothing)
+        meaningful = state.ref > FLOOR_REFERENCE * state.floor
+        stats["floor_limited"] = (status == Status.SUCCESS) & (res > tol) & meaningful
     stats.update(terms.stats(pot, state.terms))
-    return Solution(x=state.x, status=state.status, stats=stats)
+    return Solution(x=state.x, status=status, stats=stats)
