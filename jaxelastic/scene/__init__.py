@@ -15,7 +15,8 @@ Modules, in import order: :mod:`~jaxelastic.scene.errors`, :mod:`~jaxelastic.sce
 generated reference), :mod:`~jaxelastic.scene.load`, :mod:`~jaxelastic.scene.problem`,
 :mod:`~jaxelastic.scene.outputs`, :mod:`~jaxelastic.scene.run`, :mod:`~jaxelastic.scene.fit`.
 Shipped scenes (``scene/data/*.toml``, :func:`shipped_scenes`; a test keeps this list
-complete): ``cook``, ``default`` (a neo-Hookean beam released under gravity), ``drop``,
+complete): ``balloon`` (an inflated thick sphere and its pressure–volume curve),
+``cook``, ``default`` (a neo-Hookean beam released under gravity), ``drop``,
 ``fibre_block``, ``fit_cantilever``, ``fold``, ``press``, ``swing2d``, ``twist``.
 """
 
