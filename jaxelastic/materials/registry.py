@@ -9,6 +9,7 @@ schema validates ``[material]`` against.
 
 from __future__ import annotations
 
+from .cardiac import Guccione, guccione, guccione_params
 from .fibres import HolzapfelGasserOgden, holzapfel_gasser_ogden, holzapfel_gasser_ogden_params
 from .isotropic import (
     arap,
@@ -46,6 +47,7 @@ __all__ = [
     "MODEL_NAMES",
     "FAMILY_KEYS",
     "FAMILY_POSITIVE_KEYS",
+    "DIRECTION_KEYS",
 ]
 
 BUILTIN = {
@@ -68,6 +70,7 @@ FAMILIES = {
     "gent": gent,
     "arruda_boyce": arruda_boyce,
     "holzapfel_gasser_ogden": holzapfel_gasser_ogden,
+    "guccione": guccione,
 }
 """Name → ψ of the rubber and soft-tissue models (:mod:`jaxelastic.materials.rubber`,
 :mod:`jaxelastic.materials.fibres`), each with its own parameter type (not
@@ -80,6 +83,7 @@ FAMILY_PARAMS = {
     "gent": gent_params,
     "arruda_boyce": arruda_boyce_params,
     "holzapfel_gasser_ogden": holzapfel_gasser_ogden_params,
+    "guccione": guccione_params,
 }
 """Name → ``<name>_params(**overrides)``, the documented typical parameters of each of
 :data:`FAMILIES` (their types expose ``shear_modulus`` and ``bulk_modulus``)."""
@@ -95,6 +99,7 @@ FAMILY_TYPES = {
     "gent": Gent,
     "arruda_boyce": ArrudaBoyce,
     "holzapfel_gasser_ogden": HolzapfelGasserOgden,
+    "guccione": Guccione,
 }
 """Name → the parameter type (a ``NamedTuple``) of each of :data:`FAMILIES`."""
 
@@ -104,5 +109,14 @@ FAMILY_KEYS = {name: tuple(t._fields) for name, t in FAMILY_TYPES.items()}
 """Rubber/tissue model name → its parameter keys (the fields of its parameter type, e.g.
 ``("c10", "c01", "kappa")`` for ``mooney_rivlin``), all required in a scene's ``[material]``."""
 
-FAMILY_POSITIVE_KEYS = frozenset({"c10", "kappa", "Jm", "lambda_m", "k2", "bulk", "mu"})
+FAMILY_POSITIVE_KEYS = frozenset({"c10", "kappa", "Jm", "lambda_m", "k2", "bulk", "mu"}) | {
+    "C",  # Guccione (jaxelastic.materials.cardiac.check_guccione)
+    "bf",
+    "bt",
+    "bfs",
+}
 """The rubber/tissue parameter keys whose values must be > 0."""
+
+DIRECTION_KEYS = ("a01", "a02", "f0", "s0")
+"""The parameter keys that are reference directions (vectors, shared or per cell), not
+scalars: HGO's fibres, Guccione's fibre and sheet."""
