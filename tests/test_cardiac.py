@@ -281,3 +281,22 @@ def test_scene_per_cell_parallel_basis_is_refused():
     }
     with pytest.raises(SceneError, match=r"s0 must not be parallel to f0 \(first cell"):
         build(load_scene("fibre_block", overrides=ov))
+
+
+@pytest.mark.extended  # one follower-pressure quasi-Newton solve, ~60 steps (~15 s loaded)
+def test_land_problem_1_coarse():
+    """Land et al. 2015 problem 1 (the Guccione beam, follower pressure 0.004 kPa on its
+    bottom face) on a 10 × 1 × 1 P2 mesh, κ = 1000 kPa: the deflected z of (10, 0.5, 1)
+    approaches the consensus ≈ 4.15–4.17 mm from below (coarse mesh and penalty: stiffer;
+    20 × 2 × 2 gives 4.07, see scripts/bench_cardiac.py)."""
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).parents[1] / "scripts" / "bench_cardiac.py"
+    spec = importlib.util.spec_from_file_location("bench_cardiac", path)
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    r = bench.beam(1, "standard", 1000.0)
+    assert r["ok"], r
+    assert 3.7 < r["z"] < 4.17, r
