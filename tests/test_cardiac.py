@@ -324,3 +324,37 @@ def test_energy_gradient_wrt_helix_angles():
     ]
     np.testing.assert_allclose(g, fd, rtol=1e-6)
     assert np.abs(g).min() > 0
+
+
+@pytest.mark.extended  # two Newton solves of a compiled active potential (~12 s loaded)
+def test_active_tension_contracts_a_free_cube():
+    """A unit cube on symmetry planes only, T_a = 1 kPa along x, ramped in two increments
+    (s·T_a): the homogeneous contraction F = diag(a, b, b) with the total nominal stress
+    zero (2-D root find on the hand P plus T_a F f0⊗f0)."""
+    from scipy.optimize import fsolve
+
+    p = M.guccione_params(kappa=100.0)
+    psi = M.with_active_tension(M.guccione)
+    f = np.array([1.0, 0.0, 0.0])
+
+    def total(ab):
+        F = np.diag([ab[0], ab[1], ab[1]])
+        P = np.asarray(P_hand(jnp.asarray(F), p)) + 1.0 * F @ np.outer(f, f)
+        return [P[0, 0], P[1, 1]]
+
+    a, b = fsolve(total, [0.9, 1.0], xtol=1e-12)
+    mesh = je.box(1, 1, 1)
+    bc = L.combine(
+        *[L.fix(mesh, L.nodes_on_plane(mesh, ax, 0.0), components=(ax,)) for ax in range(3)]
+    )
+    pc = M.per_cell_basis(p, mesh.n_cells)
+    x = mesh.points
+    for s in (0.5, 1.0):
+        ap = M.ActiveTension(passive=pc, Ta=jnp.asarray(s * 1.0), f0=pc.f0)
+        sol = je.solve(
+            je.Potential(mesh=mesh, params=ap, psi=psi), bc, x0=x, solver=je.Newton(rtol=1e-10)
+        )
+        x = sol.x
+    F = np.asarray(je.mechanics.kinematics.deformation_gradients(x, mesh))[:, 0]
+    assert a < 1.0
+    np.testing.assert_allclose(F, np.broadcast_to(np.diag([a, b, b]), F.shape), atol=1e-8)
