@@ -20,7 +20,7 @@ from jax.core import Tracer
 
 from ..cache import ensure_persistent_cache
 from ..loads import Dirichlet
-from ..materials import Guccione, Lame, check_guccione, check_lame
+from ..materials import ActiveTension, Guccione, Lame, check_guccione, check_lame
 from ..mechanics.checks import check_psi
 from ..mechanics.potential import Potential, is_array
 from ..mechanics.pressure import check_closed
@@ -183,8 +183,9 @@ def _check_inputs(pot: Potential, bc: Dirichlet, x0):
     if not is_traced(pot.params):
         if isinstance(pot.params, Lame):
             check_lame(pot.params, int(shape[1]))
-        if isinstance(pot.params, Guccione):
-            check_guccione(pot.params)
+        passive = pot.params.passive if isinstance(pot.params, ActiveTension) else pot.params
+        if isinstance(passive, Guccione):
+            check_guccione(passive)
         mesh = pot.mesh
         check_psi(
             pot.psi, int(shape[1]), mesh.points.dtype, pot.params, mesh.n_cells, where="je.solve"
