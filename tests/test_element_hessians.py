@@ -29,6 +29,8 @@ def _params(name: str, n_cells: int):
     p = M.FAMILY_PARAMS[name]()
     if name == "holzapfel_gasser_ogden":
         p = M.per_cell_fibres(p, n_cells)
+    if name == "guccione":
+        p = M.per_cell_basis(p, n_cells)
     return p
 
 

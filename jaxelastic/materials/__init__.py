@@ -11,6 +11,9 @@ does.
   neo-Hookean, stable neo-Hookean, the isochoric neo-Hookean of the JAX-FEM twist;
 * :mod:`~jaxelastic.materials.rubber`: Mooney–Rivlin, Yeoh, Ogden, Gent, Arruda–Boyce;
 * :mod:`~jaxelastic.materials.fibres`: Holzapfel–Gasser–Ogden with fibre dispersion;
+* :mod:`~jaxelastic.materials.cardiac`: Guccione's law of passive myocardium and the
+  active fibre tension wrapper;
+* :mod:`~jaxelastic.materials.fibre_rules`: the helix fibre rule of an ellipsoidal ventricle;
 * :mod:`~jaxelastic.materials.spectral`: spectral functions of ``C`` with finite
   derivatives at repeated stretches (custom JVPs);
 * :mod:`~jaxelastic.materials.registry`: the one table of built-in laws and parameter types
@@ -19,10 +22,20 @@ does.
   autodiff cross-checks only.
 """
 
+from . import cardiac as cardiac
+from . import fibre_rules as fibre_rules
 from . import fibres as fibres
 from . import reference as reference
 from . import rubber as rubber
 from . import spectral as spectral
+from .cardiac import ActiveTension as ActiveTension
+from .cardiac import Guccione as Guccione
+from .cardiac import check_guccione as check_guccione
+from .cardiac import guccione as guccione
+from .cardiac import guccione_params as guccione_params
+from .cardiac import per_cell_basis as per_cell_basis
+from .cardiac import with_active_tension as with_active_tension
+from .fibre_rules import helix_fibres as helix_fibres
 from .fibres import HolzapfelGasserOgden as HolzapfelGasserOgden
 from .fibres import fibre_pair as fibre_pair
 from .fibres import holzapfel_gasser_ogden as holzapfel_gasser_ogden
@@ -42,6 +55,7 @@ from .parameters import Lame as Lame
 from .parameters import check_lame as check_lame
 from .parameters import lame as lame
 from .registry import BUILTIN as BUILTIN
+from .registry import DIRECTION_KEYS as DIRECTION_KEYS
 from .registry import FAMILIES as FAMILIES
 from .registry import FAMILY_KEYS as FAMILY_KEYS
 from .registry import FAMILY_PARAMS as FAMILY_PARAMS
@@ -68,6 +82,8 @@ from .rubber import yeoh as yeoh
 from .rubber import yeoh_params as yeoh_params
 
 __all__ = [
+    "cardiac",
+    "fibre_rules",
     "fibres",
     "reference",
     "rubber",
@@ -77,6 +93,15 @@ __all__ = [
     "holzapfel_gasser_ogden_params",
     "fibre_pair",
     "per_cell_fibres",
+    "ActiveTension",
+    "Guccione",
+    "check_guccione",
+    "guccione",
+    "guccione_params",
+    "per_cell_basis",
+    "with_active_tension",
+    "helix_fibres",
+    "DIRECTION_KEYS",
     "linear",
     "stvk",
     "corotated",

@@ -7,7 +7,8 @@ independently from the closed forms of the literature, not derived from the ψ c
   course notes), §3 (linear, StVK, neo-Hookean) and §5 (corotated); Stomakhin et al. 2012
   (fixed corotated); Kim & Eberle 2022, §7 (stable neo-Hookean); Smith, de Goes & Kim 2018
   (stable neo-Hookean with log term).
-* Rubber and tissue (:mod:`jaxelastic.materials.rubber`, :mod:`jaxelastic.materials.fibres`):
+* Rubber and tissue (:mod:`jaxelastic.materials.rubber`, :mod:`jaxelastic.materials.fibres`,
+  :mod:`jaxelastic.materials.cardiac`: Guccione's ``S = ∂ψ/∂E``, ``P = F S``):
   P written from the invariant derivatives ``∂Ī₁/∂F = J^{-2/3}(2F − ⅔ I₁ F⁻ᵀ)``,
   ``∂Ī₂/∂F = J^{-4/3}(2(I₁F − FC) − ⁴⁄₃ I₂ F⁻ᵀ)``, ``∂Ī₄/∂F = J^{-2/3}(2F a⊗a − ⅔ I₄ F⁻ᵀ)``
   and ``∂U/∂F = κ/2 (J² − 1) F⁻ᵀ`` (Holzapfel 2000, *Nonlinear Solid Mechanics*,
@@ -43,6 +44,7 @@ __all__ = [
     "P_gent",
     "P_arruda_boyce",
     "P_holzapfel_gasser_ogden",
+    "P_guccione",
     "HAND_P",
     "five_step_forces",
 ]
@@ -192,6 +194,30 @@ def P_holzapfel_gasser_ogden(F, p):
     return _block(P, F)
 
 
+def P_guccione(F, p):
+    """``P = F S + κ/2 (J² − 1) F⁻ᵀ`` with ``S = C e^Q R (B ∘ Ê) Rᵀ``, ``Ê = Rᵀ E R`` the
+    Green–Lagrange strain in the orthonormal (f, s, n) basis R (columns; s Gram–Schmidt
+    against f), B the exponents (b_f on ff; b_t on ss, nn, sn, ns; b_fs on fs, sf, fn, nf)
+    and ``Q = Σ B_ij Ê_ij²`` (Guccione, McCulloch & Waldman 1991: ``S = ∂ψ/∂E``)."""
+    F3 = embed_plane_strain(F)
+    J = det(F3)
+    FinvT = jnp.linalg.inv(F3).T
+
+    def pad(a):
+        a = jnp.asarray(a)
+        return jnp.concatenate([a, jnp.zeros((1,), a.dtype)]) if a.shape == (2,) else a
+
+    f = pad(p.f0) / jnp.linalg.norm(pad(p.f0))
+    s = pad(p.s0) - jnp.dot(pad(p.s0), f) * f
+    s = s / jnp.linalg.norm(s)
+    R = jnp.stack([f, s, jnp.cross(f, s)], axis=1)
+    E_loc = R.T @ (0.5 * (F3.T @ F3 - jnp.eye(3, dtype=F3.dtype))) @ R
+    B = jnp.array([[p.bf, p.bfs, p.bfs], [p.bfs, p.bt, p.bt], [p.bfs, p.bt, p.bt]])
+    Q = jnp.sum(B * E_loc * E_loc)
+    S = p.C * jnp.exp(Q) * (R @ (B * E_loc) @ R.T)
+    return _block(F3 @ S + _P_vol(J, FinvT, p.kappa), F)
+
+
 HAND_P = {
     "linear": P_linear,
     "stvk": P_stvk,
@@ -207,6 +233,7 @@ HAND_P = {
     "gent": P_gent,
     "arruda_boyce": P_arruda_boyce,
     "holzapfel_gasser_ogden": P_holzapfel_gasser_ogden,
+    "guccione": P_guccione,
 }
 """Built-in model name → hand-derived P(F, params)."""
 

@@ -13,6 +13,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from .cardiac import ActiveTension, Guccione, check_guccione, guccione, guccione_params
 from .fibres import HolzapfelGasserOgden, holzapfel_gasser_ogden, holzapfel_gasser_ogden_params
 from .isotropic import (
     arap,
@@ -56,6 +57,7 @@ __all__ = [
     "check_material",
     "GENT_JM_MIN",
     "FIBRE_LENGTH_MIN",
+    "DIRECTION_KEYS",
 ]
 
 BUILTIN = {
@@ -78,6 +80,7 @@ FAMILIES = {
     "gent": gent,
     "arruda_boyce": arruda_boyce,
     "holzapfel_gasser_ogden": holzapfel_gasser_ogden,
+    "guccione": guccione,
 }
 """Name → ψ of the rubber and soft-tissue models (:mod:`jaxelastic.materials.rubber`,
 :mod:`jaxelastic.materials.fibres`), each with its own parameter type (not
@@ -90,6 +93,7 @@ FAMILY_PARAMS = {
     "gent": gent_params,
     "arruda_boyce": arruda_boyce_params,
     "holzapfel_gasser_ogden": holzapfel_gasser_ogden_params,
+    "guccione": guccione_params,
 }
 """Name → ``<name>_params(**overrides)``, the documented typical parameters of each of
 :data:`FAMILIES` (their types expose ``shear_modulus`` and ``bulk_modulus``)."""
@@ -105,6 +109,7 @@ FAMILY_TYPES = {
     "gent": Gent,
     "arruda_boyce": ArrudaBoyce,
     "holzapfel_gasser_ogden": HolzapfelGasserOgden,
+    "guccione": Guccione,
 }
 """Name → the parameter type (a ``NamedTuple``) of each of :data:`FAMILIES`."""
 
@@ -114,7 +119,12 @@ FAMILY_KEYS = {name: tuple(t._fields) for name, t in FAMILY_TYPES.items()}
 """Rubber/tissue model name → its parameter keys (the fields of its parameter type, e.g.
 ``("c10", "c01", "kappa")`` for ``mooney_rivlin``), all required in a scene's ``[material]``."""
 
-FAMILY_POSITIVE_KEYS = frozenset({"c10", "kappa", "Jm", "lambda_m", "k2", "bulk", "mu"})
+FAMILY_POSITIVE_KEYS = frozenset({"c10", "kappa", "Jm", "lambda_m", "k2", "bulk", "mu"}) | {
+    "C",  # Guccione (jaxelastic.materials.cardiac.check_guccione)
+    "bf",
+    "bt",
+    "bfs",
+}
 """The rubber/tissue parameter keys whose values must be > 0."""
 
 
@@ -265,14 +275,24 @@ def check_material(params, dim: int) -> None:
     Raises:
         ValueError: naming the parameter (:class:`MaterialParameterError` for a family).
     """
+    if isinstance(params, ActiveTension):  # the passive law's constants
+        params = params.passive
     if isinstance(params, Lame):
         check_lame(params, dim)
+        return
+    if isinstance(params, Guccione):
+        check_guccione(params)
         return
     for name, t in FAMILY_TYPES.items():
         if isinstance(params, t):
             try:
-                values = {k: np.asarray(v) for k, v in params._asdict().items()}
+                values = {k: np.asarray(getattr(params, k)) for k in t._fields}
             except Exception:  # noqa: BLE001 — traced leaves (inside jit/grad): not checked
                 return
             check_family(name, values)
             return
+
+
+DIRECTION_KEYS = ("a01", "a02", "f0", "s0")
+"""The parameter keys that are reference directions (vectors, shared or per cell), not
+scalars: HGO's fibres, Guccione's fibre and sheet."""

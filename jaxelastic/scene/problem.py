@@ -26,9 +26,12 @@ from ..io import MeshData, read_mesh
 from ..loads import Dirichlet
 from ..materials import (
     BUILTIN,
+    DIRECTION_KEYS,
     FAMILIES,
     FAMILY_TYPES,
+    Guccione,
     Lame,
+    check_guccione,
     lame,
 )
 from ..mechanics.potential import Potential
@@ -344,10 +347,16 @@ def _family_params(scene: Scene, mesh: Mesh, md: MeshData | None):
         )
         for k in fields
     }
-    return FAMILY_TYPES[m.model](**vals)
+    params = FAMILY_TYPES[m.model](**vals)
+    if isinstance(params, Guccione):  # a per-cell basis (cell data, regions) checked here
+        try:
+            check_guccione(params)
+        except ValueError as e:
+            raise scene.error(f"[material]: {e}") from None
+    return params
 
 
-_FIBRE_KEYS = ("a01", "a02")
+_FIBRE_KEYS = DIRECTION_KEYS
 
 
 def _fibre_field(scene: Scene, key: str, spec, mesh: Mesh, md: MeshData | None, raw: dict):

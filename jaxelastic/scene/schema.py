@@ -15,6 +15,7 @@ directory that relative mesh paths and ``"module:function"`` imports resolve aga
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, Union
@@ -39,6 +40,7 @@ from pydantic import (
 from ..dynamics import H_MIN
 from ..materials import (
     BUILTIN,
+    DIRECTION_KEYS,
     FAMILIES,
     FAMILY_KEYS,
     FAMILY_POSITIVE_KEYS,
@@ -490,6 +492,21 @@ class MaterialSpec(Table):
     a02: FibreDirection | None = Field(
         default=None, description="HGO second fibre direction (the same forms as a01)"
     )
+    # --- Guccione's law (jaxelastic.materials.cardiac) ---
+    C: Number | None = Field(default=None, description="[Pa] Guccione stiffness scale (> 0)")
+    bf: Number | None = Field(default=None, description="Guccione fibre exponent (> 0)")
+    bt: Number | None = Field(default=None, description="Guccione transverse exponent (> 0)")
+    bfs: Number | None = Field(
+        default=None, description="Guccione fibre–sheet shear exponent (> 0)"
+    )
+    f0: FibreDirection | None = Field(
+        default=None, description="Guccione fibre direction (reference; the same forms as a01)"
+    )
+    s0: FibreDirection | None = Field(
+        default=None,
+        description="Guccione sheet direction (the same forms as a01; orthogonalised against "
+        "f0, must not be parallel to it)",
+    )
 
     @model_validator(mode="after")
     def _one_pair(self):
@@ -530,7 +547,7 @@ class MaterialSpec(Table):
                 raise fail(f"{{at}}.{k} is required for {self.model!r} (keys: {', '.join(keys)})")
             if k in FAMILY_POSITIVE_KEYS and not v > 0:
                 raise fail(f"{{at}}.{k} must be > 0, got {v!r}")
-            if k in ("a01", "a02") and _is_vector(v) and (len(v) not in (2, 3) or not any(v)):
+            if k in DIRECTION_KEYS and _is_vector(v) and (len(v) not in (2, 3) or not any(v)):
                 raise fail(f"{{at}}.{k} must be a nonzero vector of 2 or 3 numbers, got {list(v)}")
         try:  # the one validation of the family's constants (also used by je.solve)
             check_family(self.model, {k: getattr(self, k) for k in keys})
@@ -541,7 +558,18 @@ class MaterialSpec(Table):
         kd = self.kappa_dispersion
         if kd is not None and not 0.0 <= kd <= 1.0 / 3.0:
             raise fail(f"{{at}}.kappa_dispersion must lie in [0, 1/3], got {kd!r}")
+        if _is_vector(self.f0) and _is_vector(self.s0) and _parallel(self.f0, self.s0):
+            raise fail(f"{{at}}.s0 must not be parallel to f0, got {self.s0}")  # Guccione
         return self
+
+
+def _parallel(f0: Any, s0: Any) -> bool:
+    """Whether two 2- or 3-vectors are parallel (|f × s| ≤ 1e-8 |f| |s|)."""
+    f, s = ([float(x) for x in v] + [0.0] * (3 - len(v)) for v in (f0, s0))
+    cross = math.hypot(
+        f[1] * s[2] - f[2] * s[1], f[2] * s[0] - f[0] * s[2], f[0] * s[1] - f[1] * s[0]
+    )
+    return not cross > 1e-8 * math.hypot(*f) * math.hypot(*s)
 
 
 def _is_vector(v) -> bool:
@@ -996,7 +1024,7 @@ def fit_parameters(model: str) -> tuple[str, ...]:
     """The names ``[fit].fields`` accepts for a material model: E and nu for the Lamé
     models, the scalar parameters of a rubber/tissue model (not fibre directions)."""
     if model in FAMILIES:
-        return tuple(k for k in FAMILY_KEYS[model] if k not in ("a01", "a02"))
+        return tuple(k for k in FAMILY_KEYS[model] if k not in DIRECTION_KEYS)
     return ("E", "nu")
 
 

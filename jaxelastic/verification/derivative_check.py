@@ -126,6 +126,8 @@ def _cell_params(params, n_cells: int):
     """``params`` ready for mesh-level calls: shared fibre directions broadcast per cell."""
     if isinstance(params, materials.HolzapfelGasserOgden):
         return materials.per_cell_fibres(params, n_cells)
+    if isinstance(params, materials.Guccione):
+        return materials.per_cell_basis(params, n_cells)
     return params
 
 
