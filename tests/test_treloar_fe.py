@@ -27,9 +27,12 @@ from jaxelastic.verification import TRELOAR
 
 KAPPA = 1e5  # MPa: ≈ 5·10⁵ times the fitted shear moduli
 
+# Newton with an absolute force floor [N]: at κ = 10⁵ MPa the residual of the stretched
+# sheet stagnates at round-off (~κ·eps) above rtol × a small warm-start residual
+SOLVER = je.Newton(rtol=1e-11, atol=1e-8)
+
 # library law, its default constants, the transforms (Mooney–Rivlin with c01 ≥ 0). Not
-# here yet: Ogden (L-BFGS stops 2–17 % away on its flat six-constant optimum) and Gent,
-# Arruda–Boyce (the equibiaxial solve at λ = 4.26 fails inside the fit, MAX_STEPS).
+# here: Ogden (L-BFGS stops 2–17 % away on its flat six-constant optimum).
 MODELS = {
     "mooney_rivlin": (
         M.mooney_rivlin,
@@ -40,6 +43,12 @@ MODELS = {
         M.yeoh,
         M.yeoh_params(kappa=KAPPA),
         M.Yeoh(F.Free(), F.Free(), F.Free(), F.Fixed()),
+    ),
+    "gent": (M.gent, M.gent_params(kappa=KAPPA), M.Gent(F.Positive(), F.Positive(), F.Fixed())),
+    "arruda_boyce": (
+        M.arruda_boyce,
+        M.arruda_boyce_params(kappa=KAPPA),
+        M.ArrudaBoyce(F.Positive(), F.Positive(), F.Fixed()),
     ),
 }
 
@@ -86,7 +95,7 @@ def fe_fit(model):
     start = init._replace(**{k: 1.05 * v for k, v in comp.values.items()})  # 5 % away
     cases = [specimen(c.test, c.stretch, c.stress, psi, init) for c in curves]
     tic = time.perf_counter()
-    res = F.fit(cases, start, transforms=tr, max_iter=300, gtol=1e-12)
+    res = F.fit(cases, start, transforms=tr, max_iter=300, gtol=1e-12, solver=SOLVER)
     return res, comp, inc, curves, time.perf_counter() - tic
 
 
@@ -106,7 +115,7 @@ def test_treloar_fe_fit_matches_the_homogeneous_compressible_fit(model):
     print(f"  FE fit: {res.iterations} iterations, {seconds:.1f} s")
     np.testing.assert_allclose(fe, hc, rtol=1e-4)
     # the specimens are homogeneous: the FE forces are the compressible homogeneous
-    # stresses at the FE parameters (to the Newton tolerance)
+    # stresses at the FE parameters (to the Newton tolerance: atol 1e-8 N on unit area)
     r, start = np.asarray(res.residuals), 0
     for c in curves:
         n = c.stress.size
@@ -115,4 +124,4 @@ def test_treloar_fe_fit_matches_the_homogeneous_compressible_fit(model):
         ref = F.nominal_stress(
             MODELS[model][0], res.material, c.test, c.stretch, incompressible=False
         )
-        np.testing.assert_allclose(pred, ref.stress, rtol=1e-8, err_msg=c.test)
+        np.testing.assert_allclose(pred, ref.stress, rtol=1e-8, atol=5e-8, err_msg=c.test)
