@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .rubber import embed_plane_strain, safe_state, volumetric
+from .rubber import embed_direction, embed_plane_strain, safe_state, volumetric
 
 __all__ = [
     "Guccione",
@@ -88,24 +88,15 @@ class Guccione(NamedTuple):
         return self.kappa + self.C * (self.bf + 2.0 * self.bt) / 9.0
 
 
-def _pad3(a) -> jax.Array:
-    a = jnp.asarray(a)
-    if a.shape == (2,):
-        a = jnp.concatenate([a, jnp.zeros((1,), a.dtype)])
-    if a.shape != (3,):
-        raise ValueError(f"a basis direction must have shape (3,) or (2,), got {a.shape}")
-    return a
-
-
 def guccione_basis(f0, s0) -> jax.Array:
     """The orthonormal ``(3, 3)`` matrix ``R = [f, s, n]`` (columns) of one cell.
 
     ``f = f0/|f0|``, ``s`` = s0 orthogonalised against f (Gram–Schmidt) and normalised,
     ``n = f × s``. f0, s0: ``(3,)`` or ``(2,)`` (padded with z = 0), nonzero, not parallel.
     """
-    f = _pad3(f0)
+    f = embed_direction(f0, "a basis direction")
     f = f / jnp.sqrt(jnp.sum(f * f))
-    s = _pad3(s0)
+    s = embed_direction(s0, "a basis direction")
     s = s - jnp.sum(s * f) * f
     s = s / jnp.sqrt(jnp.sum(s * s))
     return jnp.stack([f, s, jnp.cross(f, s)], axis=1)
@@ -228,7 +219,7 @@ def with_active_tension(psi: Callable) -> Callable:
     """
 
     def active(F: jax.Array, params: ActiveTension) -> jax.Array:
-        f = _pad3(params.f0)
+        f = embed_direction(params.f0, "a basis direction")
         f = f / jnp.sqrt(jnp.sum(f * f))
         Ff = embed_plane_strain(F) @ f
         I4 = jnp.sum(Ff * Ff)

@@ -21,7 +21,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .rubber import modified_invariants, safe_state, volumetric
+from .rubber import embed_direction, modified_invariants, safe_state, volumetric
 
 __all__ = [
     "HolzapfelGasserOgden",
@@ -78,11 +78,7 @@ class HolzapfelGasserOgden(NamedTuple):
 
 
 def _unit3(a) -> jax.Array:
-    a = jnp.asarray(a)
-    if a.shape == (2,):
-        a = jnp.concatenate([a, jnp.zeros((1,), a.dtype)])
-    if a.shape != (3,):
-        raise ValueError(f"a fibre direction must have shape (3,) or (2,), got {a.shape}")
+    a = embed_direction(a, "a fibre direction")
     return a / jnp.sqrt(jnp.sum(a * a))
 
 

@@ -49,6 +49,7 @@ from .spectral import power, stretch_sum
 
 __all__ = [
     "embed_plane_strain",
+    "embed_direction",
     "volumetric",
     "modified_invariants",
     "MooneyRivlin",
@@ -81,6 +82,22 @@ def embed_plane_strain(F: jax.Array) -> jax.Array:
     if F.shape == (2, 2):
         return jnp.zeros((3, 3), F.dtype).at[:2, :2].set(F).at[2, 2].set(1.0)
     raise ValueError(f"F must be 2x2 or 3x3, got shape {F.shape}")
+
+
+def embed_direction(a, what: str = "a reference direction") -> jax.Array:
+    """A reference direction as a ``(3,)`` vector: 3D unchanged, an in-plane ``(2,)``
+    direction gets a zero third component (the plane-strain embedding of
+    :func:`embed_plane_strain`).
+
+    Raises:
+        ValueError: any other shape (the message names ``what``).
+    """
+    a = jnp.asarray(a)
+    if a.shape == (2,):
+        a = jnp.concatenate([a, jnp.zeros((1,), a.dtype)])
+    if a.shape != (3,):
+        raise ValueError(f"{what} must have shape (3,) or (2,), got {a.shape}")
+    return a
 
 
 def safe_state(F: jax.Array):
