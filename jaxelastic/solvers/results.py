@@ -184,6 +184,17 @@ _WARNING_TEXT = {
 }
 
 
+def _concrete(v) -> float | None:
+    """``v`` as a Python float, or None when absent or traced (an eager ``jax.jvp`` of a
+    solve carries its statistics as tracers: nothing is warned there, as inside jit)."""
+    if v is None:
+        return None
+    try:
+        return float(v)
+    except (jax.errors.ConcretizationTypeError, TypeError):
+        return None
+
+
 def warn_solution(sol: Solution, what: str = "je.solve", stacklevel: int = 3) -> None:
     """Emit a :class:`SolveWarning` for each of :func:`solution_warnings` (fixed texts, so
     Python shows each once per calling line; the numbers are in ``sol.stats``)."""
@@ -192,7 +203,8 @@ def warn_solution(sol: Solution, what: str = "je.solve", stacklevel: int = 3) ->
     st = sol.stats
     if int(sol.status) != Status.SUCCESS:
         return
-    if "min_J" in st and not float(st["min_J"]) > 0:
+    min_J, floor = _concrete(st.get("min_J")), _concrete(st.get("floor_limited"))
+    if min_J is not None and not min_J > 0:
         warnings.warn(f"{what}: {_WARNING_TEXT['inverted']}", SolveWarning, stacklevel=stacklevel)
-    if "floor_limited" in st and bool(st["floor_limited"]):
+    if floor is not None and bool(floor):
         warnings.warn(f"{what}: {_WARNING_TEXT['floor']}", SolveWarning, stacklevel=stacklevel)
