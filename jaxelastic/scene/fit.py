@@ -136,6 +136,19 @@ def read_observed(scene: Scene, key: str, path: str, n_nodes: int, dim: int, res
 # ----------------------------------------------------------------------------------------
 
 
+def _stop_at_iterations(summary: dict, done: str):
+    """The optimiser's per-iteration callback of a scene fit: past the first iteration (and
+    its compilation) a signal stops the fit at the next one, and ``summary["completed"]``
+    says how far it got (``done`` and the iterations)."""
+
+    def at_iteration(k, params, loss) -> bool:
+        interrupt.at_boundaries()
+        summary["completed"] = f"{done} and {k} optimiser iteration(s)"
+        return interrupt.requested() is not None
+
+    return at_iteration
+
+
 def _fit_spec(scene: Scene) -> FitSpec:
     """The scene's ``[fit]`` table; SceneError when it has none."""
     if scene.spec.fit is None:
@@ -371,11 +384,7 @@ def _fit_and_write(scene, out, cases, markers, arrays, labels, n_reg, progress, 
     t0 = time.perf_counter()
     summary["completed"] = "the observations; interrupted during the optimiser"
 
-    def at_iteration(k, params, loss) -> bool:
-        # past the first iteration (and its compilation) a signal stops at the next one
-        interrupt.at_boundaries()
-        summary["completed"] = f"the observations and {k} optimiser iteration(s)"
-        return interrupt.requested() is not None
+    at_iteration = _stop_at_iterations(summary, "the observations")
 
     with interrupt.immediate():  # until the first iteration ends: no boundary to stop at
         res = _fit(scene, cases, labels, n_reg, progress, at_iteration)
@@ -565,10 +574,7 @@ def _measured_fit(scene: Scene, out: str, builts: list[Built], progress: bool, s
     t0 = time.perf_counter()
     summary["completed"] = "the build; interrupted during the optimiser"
 
-    def at_iteration(k, params, loss) -> bool:
-        interrupt.at_boundaries()
-        summary["completed"] = f"the build and {k} optimiser iteration(s)"
-        return interrupt.requested() is not None
+    at_iteration = _stop_at_iterations(summary, "the build")
 
     with interrupt.immediate():
         res = fitting.fit(
