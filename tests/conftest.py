@@ -42,3 +42,19 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_compilation_cache_dir", os.environ["JAXELASTIC_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+# A size limit makes JAX lock the cache directory (the ``filelock`` package) around every
+# read, write and eviction: without one, a worker can read an entry the other is half-way
+# through writing.
+jax.config.update("jax_compilation_cache_max_size", 8 * 2**30)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``slow`` run only when the ``-m`` expression names ``slow``: the second
+    tier ``pytest -m extended`` leaves out the tests marked both ``extended`` and ``slow``
+    (``-m slow`` or ``-m "extended or slow"`` runs them)."""
+    if "slow" in (config.getoption("markexpr") or ""):
+        return
+    slow = [item for item in items if item.get_closest_marker("slow") is not None]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = [item for item in items if item.get_closest_marker("slow") is None]
