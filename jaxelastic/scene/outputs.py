@@ -877,8 +877,10 @@ def run_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
 
 
 def fit_table(s: dict, *, compile_s: float | None = None, wall_s: float | None = None) -> str:
-    """The summary of a fit for people (like :func:`run_table`): the fitted E and ν with
-    the truth and relative errors when known, the data, the iterations, time and files."""
+    """The summary of a fit for people (like :func:`run_table`): the fitted parameters —
+    with their standard errors and each observation's RMS residual for a fit to
+    measurements, with the truth and relative errors for synthetic (E, ν) targets —, the
+    data, the iterations, time and files."""
     r = s["result"]
     head = (
         f"{s['scene']['name']}: fit {s['status']} ({r['stop_reason']}, "
@@ -886,6 +888,65 @@ def fit_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
     )
     rows = [("mesh", _mesh_row(s["mesh"])), ("material", _material_row(s, constants=False))]
     rows.append(("solver", _solver_row(s)))
+    if "fitted" in s:  # measurements over load paths: any parameter, with standard errors
+        rows.extend(_measured_rows(s))
+    else:
+        rows.extend(_synthetic_rows(s))
+    h = s.get("history", {})
+    newton, lin = h.get("newton_steps"), h.get("linear_iterations")
+    if newton is not None and lin is not None:
+        rows.append(
+            (
+                "iterations",
+                f"{r['iterations']} optimiser, {int(np.sum(newton))} Newton, "
+                f"{int(np.sum(lin))} linear (all solves)",
+            )
+        )
+    rows.append(("time", _time_row(s, compile_s, wall_s)))
+    rows.append(("outputs", _outputs_row(s)))
+    return head + "\n" + _rows(rows)
+
+
+def _measured_rows(s: dict) -> list[tuple[str, str]]:
+    """Rows of a fit to measurements: each fitted parameter ± its standard error (and its
+    start), the held ones, each observation's RMS residual against its σ, the reduced χ²."""
+    rows = []
+    se, init = s.get("standard_errors") or {}, s.get("initial") or {}
+    for k, v in s["fitted"].items():
+        text = ", ".join(_g(a, 6) for a in np.atleast_1d(v))
+        if k in se:
+            text += " ± " + ", ".join(_g(a, 2) for a in np.atleast_1d(se[k]))
+        if k in init:
+            text += f"  (start {', '.join(_g(a) for a in np.atleast_1d(init[k]))})"
+        rows.append((k, text))
+    held = s.get("held") or {}
+    if held:
+        rows.append(("held", ", ".join(f"{k} = {_g(v)}" for k, v in held.items())))
+    for i, case in enumerate(s.get("cases", [])):
+        for o in case.get("observations", []):
+            rows.append(
+                (
+                    f"case {i}",
+                    f"{o['kind']} ({o['file']}): {o['n_values']} values, RMS residual "
+                    f"{_g(o['rms'], 3)} (σ {_g(o['sigma'], 3)})",
+                )
+            )
+    u = s.get("uncertainty") or {}
+    if u.get("reduced_chi2") is not None:
+        rows.append(
+            (
+                "uncertainty",
+                f"reduced χ² {_g(u['reduced_chi2'], 3)}, condition number "
+                f"{_g(u.get('condition_number'), 3)}, rank {u.get('rank')}",
+            )
+        )
+    return rows
+
+
+def _synthetic_rows(s: dict) -> list[tuple[str, str]]:
+    """Rows of a fit of (E, ν) to observed node positions: the values, the truth and the
+    relative errors when known, the observed nodes."""
+    r, rows = s["result"], []
     t, init = s.get("target"), s.get("initial") or {}
     for k in ("E", "nu"):
         vals = np.atleast_1d(r[k])
@@ -906,16 +967,4 @@ def fit_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
             f"({_g(100 * o.get('fraction_of_nodes', 0.0), 3)} %), noise {_g(o.get('noise'))}",
         )
     )
-    h = s.get("history", {})
-    newton, lin = h.get("newton_steps"), h.get("linear_iterations")
-    if newton is not None and lin is not None:
-        rows.append(
-            (
-                "iterations",
-                f"{r['iterations']} optimiser, {int(np.sum(newton))} Newton, "
-                f"{int(np.sum(lin))} linear (all solves)",
-            )
-        )
-    rows.append(("time", _time_row(s, compile_s, wall_s)))
-    rows.append(("outputs", _outputs_row(s)))
-    return head + "\n" + _rows(rows)
+    return rows
