@@ -390,6 +390,7 @@ def test_identifiability_bending_vs_stretch(beam2):
     assert vif[0] >= 20 * vif[1], vif
 
 
+@pytest.mark.extended  # about 35 s: central differences of every region's E and nu
 def test_grad_region_parameters_fd(bar):
     """Gradient of the fitting objective w.r.t. the unconstrained region variables (two
     regions; and per-cell fields with a Tikhonov term) vs 4th-order central differences."""

@@ -213,7 +213,7 @@ def test_uniaxial_neo_hookean_closed_form(rect, blk, dim):
 # --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("linear", ["auto", "cg"])
+@pytest.mark.parametrize("linear", ["auto", pytest.param("cg", marks=pytest.mark.extended)])
 def test_quadratic_convergence(blk, linear):
     """Sparse direct solves (the default) and inexact CG with the forcing term ~‖g‖ both
     keep Newton quadratic: r_{k+1}/r_k² stays bounded."""
@@ -508,6 +508,7 @@ def _turned_square(rect):
     return pot, bc, je.solvers.prepare_solver(Newton(rtol=1e-10, linear="direct"), rect, bc)
 
 
+@pytest.mark.extended  # about 1 min: one traced and one host solve per iterate
 def test_traced_and_python_newton_loops_take_the_same_iterates(rect):
     """The one Newton loop runs under ``lax.while_loop`` when traced (here: ``jit`` of
     ``minimize``, the host solve a callback) and in Python over compiled pieces for
