@@ -199,9 +199,11 @@ def _curved(m: Mesh, order: int, formulation: str) -> Mesh:
     """Lift a P1 mesh of a shell centred at the origin; the mid-edge nodes of P2 moved to
     the mean radius of the edge's ends along their own direction (a curved, isoparametric
     boundary: the P2 volume error is then O(h⁴), not the straight-edged O(h²))."""
-    if order == 1 and formulation == "standard":
-        return m
-    q = to_quadratic(m, composite=order == 1, formulation=formulation)
+    if order == 1:  # P1, or the composite element (straight edges)
+        if formulation == "standard":
+            return m
+        return to_quadratic(m, composite=True, formulation=formulation)
+    q = to_quadratic(m, formulation=formulation)
     if order == 1:
         return q
     cells = np.asarray(q.cells)
@@ -361,7 +363,9 @@ def truncated_ellipsoid(
     diagonals alternate); each triangle is extruded through ``n_t`` layers into prisms of
     three tets, split by the node numbers so neighbouring prisms share their face diagonals.
     ``order=2``: the mid-edge nodes at the parametric midpoints, on the ellipsoids and the
-    base plane (curved, isoparametric facets).
+    base plane (curved, isoparametric facets). The composite element (``order=1`` with
+    F-bar/B-bar) keeps them at the straight edges' midpoints (curving them inverts sub-tets
+    of coarse meshes).
 
     Args:
         n_u: cells from the apex to the base (≥ 1).
@@ -447,9 +451,9 @@ def ellipsoid_surfaces(
 ) -> dict[str, np.ndarray]:
     """The boundary facets of a :func:`truncated_ellipsoid` mesh by surface.
 
-    A facet belongs to a surface when all its nodes (mid-edge nodes included) lie on it
-    within ``tol`` relative: ``ρ²/r_s² + z²/r_l² = 1`` for the endocardium and epicardium
-    (radii ``endo``, ``epi``), ``z = base`` for the base.
+    A facet belongs to a surface when its corners lie on it within ``tol`` relative:
+    ``ρ²/r_s² + z²/r_l² = 1`` for the endocardium and epicardium (radii ``endo``, ``epi``),
+    ``z = base`` for the base.
 
     Returns:
         ``{"endocardium": ..., "epicardium": ..., "base": ...}``, each ``(m, k)`` facets
@@ -472,7 +476,7 @@ def ellipsoid_surfaces(
     facets = boundary_facets(mesh)
     out, seen = {}, np.zeros(len(facets), dtype=bool)
     for name, mask in on.items():
-        sel = mask[facets].all(axis=1)
+        sel = mask[facets[:, : mesh.dim]].all(axis=1)  # the corners
         if not sel.any():
             raise ValueError(f"the mesh has no boundary facet on the {name}")
         out[name] = facets[sel]
