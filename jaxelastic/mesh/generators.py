@@ -327,12 +327,13 @@ def _ellipsoid_map(s, v, t, endo, epi, base: float) -> np.ndarray:
     """Points ``(n, 3)`` at parameters ``s`` (0 apex … 1 base), ``v`` (around) and ``t``
     (0 endocardium … 1 epicardium): radii interpolated linearly in t, the angle
     ``u = −π + s (u_b(t) + π)`` with ``u_b(t) = −arccos(base / r_long(t))``, so s = 1 lies
-    on the base plane ``z = base`` in every layer (set exactly)."""
+    on the base plane ``z = base`` in every layer and s = 0 on the axis (both set exactly)."""
     (a0, b0), (a1, b1) = endo, epi
     rs, rl = a0 + t * (a1 - a0), b0 + t * (b1 - b0)
     u = -np.pi + s * (np.pi - np.arccos(base / rl))
     z = np.where(s == 1.0, base, rl * np.cos(u))
-    return np.stack([rs * np.sin(u) * np.cos(v), rs * np.sin(u) * np.sin(v), z], axis=1)
+    rho = np.where(s == 0.0, 0.0, rs * np.sin(u))  # the apex on the axis, exactly
+    return np.stack([rho * np.cos(v), rho * np.sin(v), z], axis=1)
 
 
 def truncated_ellipsoid(
