@@ -17,7 +17,8 @@ generated reference), :mod:`~jaxelastic.scene.load`, :mod:`~jaxelastic.scene.pro
 Shipped scenes (``scene/data/*.toml``, :func:`shipped_scenes`; a test keeps this list
 complete): ``balloon`` (an inflated thick sphere and its pressure–volume curve),
 ``cook``, ``default`` (a neo-Hookean beam released under gravity), ``drop``,
-``fibre_block``, ``fit_cantilever``, ``fold``, ``press``, ``swing2d``, ``twist``.
+``fibre_block``, ``fit_cantilever``, ``fold``, ``press``, ``swing2d``, ``twist``,
+``ventricle`` (an idealised left ventricle inflated to 10 kPa: Land et al. 2015, problem 2).
 """
 
 from .docs import reference_markdown as reference_markdown

@@ -425,8 +425,9 @@ class FibreRule(Table):
     )
     endo_radii: tuple[Positive, Positive] = Field(
         default=(7.0, 17.0),
-        description="(short, long) radii of the endocardium [length units of the mesh]; the "
-        "ellipsoid is centred at the origin with its long axis along z",
+        description="(short, long) radii of the endocardium, in the mesh's length unit (the "
+        "defaults: the ventricle of Land et al. 2015 in mm); the ellipsoids are centred at "
+        "the origin with their long axis along z",
     )
     epi_radii: tuple[Positive, Positive] = Field(
         default=(10.0, 20.0), description="(short, long) radii of the epicardium"
