@@ -386,8 +386,12 @@ def truncated_ellipsoid(
     _check_counts(n_u=n_u, n_v=n_v, n_t=n_t)
     if n_v < 3:
         raise ValueError(f"n_v must be at least 3, got {n_v!r}")
+    if order not in (1, 2):
+        raise ValueError(f"order must be 1 or 2, got {order!r}")
+    check_formulation(formulation)
     endo, epi = _check_radii(endo, epi, float(base))
     base = float(base)
+    ensure_persistent_cache()  # the library's default cache, before the first compile
     # the surface grid: the apex, then rings i = 1 … n_u of n_v nodes
     ring_s = np.repeat(np.arange(1, n_u + 1) / n_u, n_v)
     ring_v = np.tile(-np.pi + 2.0 * np.pi * np.arange(n_v) / n_v, n_u)
@@ -420,9 +424,6 @@ def truncated_ellipsoid(
     s3, v3 = np.tile(s2, n_t + 1), np.tile(v2, n_t + 1)
     X = _ellipsoid_map(s3, v3, t3, endo, epi, base)
     m = from_arrays(X, _oriented(X, tets), "tet4", **kw)
-    if order not in (1, 2):
-        raise ValueError(f"order must be 1 or 2, got {order!r}")
-    check_formulation(formulation)
     if order == 1:  # P1, or the composite element (straight edges)
         if formulation == "standard":
             return m
