@@ -5,7 +5,7 @@ Modules: :mod:`~jaxelastic.mesh.core` (the pytree and its validating constructor
 :mod:`~jaxelastic.mesh.geometry` (the rest quantities as functions of the rest points, on
 NumPy or JAX arrays: what makes :meth:`Mesh.with_points` differentiable),
 :mod:`~jaxelastic.mesh.generators` (rectangle, box, Cook's membrane, spherical shell,
-annulus),
+annulus, truncated ellipsoid),
 :mod:`~jaxelastic.mesh.quadratic` (P2 / composite lifting, formulation switch) and
 :mod:`~jaxelastic.mesh.boundary` (boundary facets and nodes). Sharded solves partition a
 mesh over devices with :mod:`jaxelastic.parallel`.
@@ -25,8 +25,10 @@ from .core import from_arrays as from_arrays
 from .generators import annulus as annulus
 from .generators import box as box
 from .generators import cook_membrane as cook_membrane
+from .generators import ellipsoid_surfaces as ellipsoid_surfaces
 from .generators import rectangle as rectangle
 from .generators import spherical_shell as spherical_shell
+from .generators import truncated_ellipsoid as truncated_ellipsoid
 from .geometry import invalid_cells as invalid_cells
 from .quadratic import linear_cells as linear_cells
 from .quadratic import to_quadratic as to_quadratic
@@ -44,6 +46,8 @@ __all__ = [
     "cook_membrane",
     "spherical_shell",
     "annulus",
+    "truncated_ellipsoid",
+    "ellipsoid_surfaces",
     "boundary_facets",
     "boundary_nodes",
     "facet_owners",

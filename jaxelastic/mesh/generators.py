@@ -1,5 +1,6 @@
 """Mesh generators: structured rectangles and boxes, Cook's membrane, thick spherical
-shells and annuli (the inflation benchmarks).
+shells and annuli (the inflation benchmarks), the truncated thick ellipsoid of an idealised
+left ventricle.
 
 Each returns a validated :class:`~jaxelastic.mesh.Mesh`; ``order=2`` lifts it to P2 and
 ``formulation="fbar"``/``"bbar"`` selects F-bar/B-bar (with ``order=1``: the composite
@@ -12,9 +13,18 @@ import numpy as np
 
 from ..cache import ensure_persistent_cache
 from .core import Mesh, check_formulation, from_arrays
+from .elements import edge_table
 from .quadratic import to_quadratic
 
-__all__ = ["rectangle", "box", "cook_membrane", "spherical_shell", "annulus"]
+__all__ = [
+    "rectangle",
+    "box",
+    "cook_membrane",
+    "spherical_shell",
+    "annulus",
+    "truncated_ellipsoid",
+    "ellipsoid_surfaces",
+]
 
 
 def _check_counts(**counts):
@@ -189,15 +199,15 @@ def _curved(m: Mesh, order: int, formulation: str) -> Mesh:
     """Lift a P1 mesh of a shell centred at the origin; the mid-edge nodes of P2 moved to
     the mean radius of the edge's ends along their own direction (a curved, isoparametric
     boundary: the P2 volume error is then O(h⁴), not the straight-edged O(h²))."""
-    if order == 1 and formulation == "standard":
-        return m
-    q = to_quadratic(m, composite=order == 1, formulation=formulation)
+    if order == 1:  # P1, or the composite element (straight edges)
+        if formulation == "standard":
+            return m
+        return to_quadratic(m, composite=True, formulation=formulation)
+    q = to_quadratic(m, formulation=formulation)
     if order == 1:
         return q
     cells = np.asarray(q.cells)
     X = np.asarray(q.points, dtype=np.float64).copy()
-    from .elements import edge_table
-
     loc = edge_table(m.element_type)  # (e, 2) corner pairs of the P1 cell
     d = m.dim
     ends = cells[:, loc]  # (c, e, 2)
@@ -291,6 +301,194 @@ def annulus(
     X, C = _merge(X, np.asarray(base.cells, dtype=np.int64), outer)
     m = from_arrays(X, _oriented(X, C), "tri3", **kw)
     return _curved(m, order, formulation)
+
+
+def _check_radii(endo, epi, base: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """``endo``, ``epi`` as float pairs ``(r_short, r_long)``, or a ValueError unless
+    ``0 < endo < epi`` in both radii and the base plane cuts every layer below its equator
+    and above its apex (``|base| < r_long``)."""
+    out = []
+    for name, r in (("endo", endo), ("epi", epi)):
+        a = np.asarray(r, dtype=np.float64)
+        if a.shape != (2,) or not np.all(np.isfinite(a)) or not np.all(a > 0):
+            raise ValueError(f"{name} must be two finite radii > 0 (r_short, r_long), got {r!r}")
+        out.append((float(a[0]), float(a[1])))
+    (a0, b0), (a1, b1) = out
+    if not (a0 < a1 and b0 < b1):
+        raise ValueError(f"need endo < epi in both radii, got endo={endo!r}, epi={epi!r}")
+    if not (np.isfinite(base) and -b0 < base < b0):
+        raise ValueError(
+            f"the base plane z = {base!r} must cut the endocardium: need |base| < {b0!r}"
+        )
+    return out[0], out[1]
+
+
+def _ellipsoid_map(s, v, t, endo, epi, base: float) -> np.ndarray:
+    """Points ``(n, 3)`` at parameters ``s`` (0 apex … 1 base), ``v`` (around) and ``t``
+    (0 endocardium … 1 epicardium): radii interpolated linearly in t, the angle
+    ``u = −π + s (u_b(t) + π)`` with ``u_b(t) = −arccos(base / r_long(t))``, so s = 1 lies
+    on the base plane ``z = base`` in every layer and s = 0 on the axis (both set exactly)."""
+    (a0, b0), (a1, b1) = endo, epi
+    rs, rl = a0 + t * (a1 - a0), b0 + t * (b1 - b0)
+    u = -np.pi + s * (np.pi - np.arccos(base / rl))
+    z = np.where(s == 1.0, base, rl * np.cos(u))
+    rho = np.where(s == 0.0, 0.0, rs * np.sin(u))  # the apex on the axis, exactly
+    return np.stack([rho * np.cos(v), rho * np.sin(v), z], axis=1)
+
+
+def truncated_ellipsoid(
+    n_u: int,
+    n_v: int,
+    n_t: int,
+    *,
+    endo=(7.0, 17.0),
+    epi=(10.0, 20.0),
+    base: float = 5.0,
+    order: int = 1,
+    formulation: str = "standard",
+    **kw,
+) -> Mesh:
+    """Tetrahedral mesh of a thick prolate ellipsoid (long axis z) cut by the plane
+    ``z = base``: the idealised left ventricle of Land et al. (2015, *Proc. R. Soc. A*
+    471:20150641, problems 2 and 3; the defaults are its radii in mm).
+
+    Each layer ``t ∈ [0, 1]`` is the ellipsoid of radii ``endo + t (epi − endo)``
+    (``(r_short, r_long)``), ``X = (r_s sin u cos v, r_s sin u sin v, r_l cos u)`` with
+    ``u ∈ [−π, −arccos(base / r_l)]`` (its own range per layer: the base is the plane
+    ``z = base`` on every layer, the apex ``u = −π`` the point ``(0, 0, −r_l)``) and
+    ``v ∈ [−π, π)``. The layers are the surfaces of constant transmural coordinate of
+    :func:`jaxelastic.materials.transmural_coordinate`, so the helix fibre rule reads t
+    off the mesh. The surface grid is ``n_u`` steps in u (uniform, apex to base) by ``n_v``
+    around: ``n_v`` triangles at the apex (a fan around its node, so the apex is a line of
+    ``n_t + 1`` nodes on the axis) and two triangles per quadrilateral elsewhere (the
+    diagonals alternate); each triangle is extruded through ``n_t`` layers into prisms of
+    three tets, split by the node numbers so neighbouring prisms share their face diagonals.
+    ``order=2``: the mid-edge nodes at the parametric midpoints, on the ellipsoids and the
+    base plane (curved, isoparametric facets). The composite element (``order=1`` with
+    F-bar/B-bar) keeps them at the straight edges' midpoints (curving them inverts sub-tets
+    of coarse meshes).
+
+    Args:
+        n_u: cells from the apex to the base (≥ 1).
+        n_v: cells around the axis (≥ 3).
+        n_t: layers through the wall (≥ 1).
+        endo, epi: ``(r_short, r_long)`` of the inner and outer surfaces [length],
+            ``endo < epi`` in both.
+        base: the base plane's z [length], ``|base| < endo[1]``.
+        order, formulation: as in :func:`rectangle`.
+
+    Returns:
+        ``(n_t + 1)(1 + n_u n_v)`` P1 nodes and ``3 n_t n_v (2 n_u − 1)`` tets; node
+        ``k (1 + n_u n_v) + 0`` is the apex of layer k, node ``k (1 + n_u n_v) + 1 +
+        (i − 1) n_v + j`` the point at ``s = i/n_u``, ``v = −π + 2π j/n_v``, ``t = k/n_t``.
+        :func:`ellipsoid_surfaces` selects the endocardium, epicardium and base facets.
+    """
+    _check_counts(n_u=n_u, n_v=n_v, n_t=n_t)
+    if n_v < 3:
+        raise ValueError(f"n_v must be at least 3, got {n_v!r}")
+    if order not in (1, 2):
+        raise ValueError(f"order must be 1 or 2, got {order!r}")
+    check_formulation(formulation)
+    endo, epi = _check_radii(endo, epi, float(base))
+    base = float(base)
+    ensure_persistent_cache()  # the library's default cache, before the first compile
+    # the surface grid: the apex, then rings i = 1 … n_u of n_v nodes
+    ring_s = np.repeat(np.arange(1, n_u + 1) / n_u, n_v)
+    ring_v = np.tile(-np.pi + 2.0 * np.pi * np.arange(n_v) / n_v, n_u)
+    s2 = np.concatenate([[0.0], ring_s])
+    v2 = np.concatenate([[0.0], ring_v])
+    n2 = s2.size
+
+    def ring(i, j):
+        return 1 + (i - 1) * n_v + (j % n_v)
+
+    j = np.arange(n_v)
+    tris = [np.stack([np.zeros(n_v, np.int64), ring(1, j), ring(1, j + 1)], axis=1)]
+    i, j = (a.ravel() for a in np.meshgrid(np.arange(1, n_u), np.arange(n_v), indexing="ij"))
+    a, b, c, d = ring(i, j), ring(i, j + 1), ring(i + 1, j + 1), ring(i + 1, j)
+    alt = ((i + j) & 1).astype(bool)  # alternate the quadrilaterals' diagonals
+    t1 = np.where(alt[:, None], np.stack([a, b, c], 1), np.stack([a, b, d], 1))
+    t2 = np.where(alt[:, None], np.stack([a, c, d], 1), np.stack([b, c, d], 1))
+    tris = np.sort(np.concatenate(tris + [t1, t2]), axis=1)  # (m, 3), a < b < c
+    # extrude: prism (a, b, c) → (a', b', c') one layer up, three tets; on the side face of
+    # a pair p < q the diagonal runs from p to q' whichever prism it belongs to (conforming)
+    k = np.arange(n_t)
+    lo = (tris[None, :, :] + (k * n2)[:, None, None]).reshape(-1, 3)
+    hi = lo + n2
+    A, B, Cc = lo.T
+    A1, B1, C1 = hi.T
+    tets = np.concatenate(
+        [np.stack([A, B, Cc, C1], 1), np.stack([A, B, B1, C1], 1), np.stack([A, A1, B1, C1], 1)]
+    )
+    t3 = np.repeat(np.arange(n_t + 1) / n_t, n2)
+    s3, v3 = np.tile(s2, n_t + 1), np.tile(v2, n_t + 1)
+    X = _ellipsoid_map(s3, v3, t3, endo, epi, base)
+    m = from_arrays(X, _oriented(X, tets), "tet4", **kw)
+    if order == 1:  # P1, or the composite element (straight edges)
+        if formulation == "standard":
+            return m
+        return to_quadratic(m, composite=True, formulation=formulation)
+    q = to_quadratic(m, formulation=formulation)
+    cells = np.asarray(q.cells)
+    ends = cells[:, :4][:, edge_table(m.element_type)].reshape(-1, 2)  # (c·6, 2)
+    mids = cells[:, 4:].reshape(-1)
+    first = np.unique(mids, return_index=True)[1]
+    mids, ends = mids[first], ends[first]
+    sa, sb = s3[ends[:, 0]], s3[ends[:, 1]]
+    va, vb = v3[ends[:, 0]], v3[ends[:, 1]]
+    va = np.where(sa == 0.0, vb, va)  # an apex node takes the other end's angle
+    vb = np.where(sb == 0.0, va, vb)
+    dv = np.mod(vb - va + np.pi, 2.0 * np.pi) - np.pi  # across v = ±π the short way
+    Xq = np.asarray(q.points, dtype=np.float64).copy()
+    Xq[mids] = _ellipsoid_map(
+        0.5 * (sa + sb), va + 0.5 * dv, t3[ends].mean(axis=1), endo, epi, base
+    )
+    return from_arrays(
+        Xq, cells, q.element, orient="refuse", dtype=q.points.dtype, formulation=formulation
+    )
+
+
+def ellipsoid_surfaces(
+    mesh: Mesh, *, endo=(7.0, 17.0), epi=(10.0, 20.0), base: float = 5.0, tol: float = 1e-9
+) -> dict[str, np.ndarray]:
+    """The boundary facets of a :func:`truncated_ellipsoid` mesh by surface.
+
+    A facet belongs to a surface when its corners lie on it within ``tol`` relative:
+    ``ρ²/r_s² + z²/r_l² = 1`` for the endocardium and epicardium (radii ``endo``, ``epi``),
+    ``z = base`` for the base.
+
+    Returns:
+        ``{"endocardium": ..., "epicardium": ..., "base": ...}``, each ``(m, k)`` facets
+        oriented with the body's outward normal (:func:`~jaxelastic.mesh.boundary_facets`).
+
+    Raises:
+        ValueError: a surface without facets, or boundary facets on none of the three
+            (not a truncated ellipsoid with these radii and base).
+    """
+    from .boundary import boundary_facets
+
+    (a0, b0), (a1, b1) = _check_radii(endo, epi, float(base))
+    X = np.asarray(mesh.points, dtype=np.float64)
+    rho2, z = X[:, 0] ** 2 + X[:, 1] ** 2, X[:, 2]
+    on = {
+        "endocardium": np.abs(rho2 / a0**2 + z**2 / b0**2 - 1.0) <= tol * 10.0,
+        "epicardium": np.abs(rho2 / a1**2 + z**2 / b1**2 - 1.0) <= tol * 10.0,
+        "base": np.abs(z - base) <= tol * max(b1, abs(base)),
+    }
+    facets = boundary_facets(mesh)
+    out, seen = {}, np.zeros(len(facets), dtype=bool)
+    for name, mask in on.items():
+        sel = mask[facets[:, : mesh.dim]].all(axis=1)  # the corners
+        if not sel.any():
+            raise ValueError(f"the mesh has no boundary facet on the {name}")
+        out[name] = facets[sel]
+        seen |= sel
+    if not seen.all():
+        raise ValueError(
+            f"{int((~seen).sum())} boundary facets lie on none of the endocardium, "
+            "epicardium and base (radii endo, epi and base must be the mesh's)"
+        )
+    return out
 
 
 def _finish(pts, cells, p1: str, order: int, formulation: str, kw) -> Mesh:

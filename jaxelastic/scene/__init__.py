@@ -18,7 +18,8 @@ Shipped scenes (``scene/data/*.toml``, :func:`shipped_scenes`; a test keeps this
 complete): ``balloon`` (an inflated thick sphere and its pressure–volume curve),
 ``cook``, ``default`` (a neo-Hookean beam released under gravity), ``drop``,
 ``fibre_block``, ``fit_cantilever``, ``fit_plate_hole`` (Mooney–Rivlin constants from a
-force curve and DIC points), ``fold``, ``press``, ``swing2d``, ``twist``.
+force curve and DIC points), ``fold``, ``press``, ``swing2d``, ``twist``, ``ventricle`` (an
+idealised left ventricle inflated to 10 kPa: Land et al. 2015, problem 2).
 """
 
 from .docs import reference_markdown as reference_markdown

@@ -32,6 +32,7 @@ from ..materials import (
     Guccione,
     Lame,
     check_guccione,
+    helix_fibres,
     lame,
 )
 from ..mechanics.potential import Potential
@@ -57,6 +58,7 @@ from .schema import (
     DynamicIntegrator,
     FibreCellData,
     FibreRegion,
+    FibreRule,
     RotateDisplacement,
     Selector,
     SolverSpec,
@@ -366,12 +368,15 @@ def _fibre_field(scene: Scene, key: str, spec, mesh: Mesh, md: MeshData | None, 
     regions give normalised ``(n_cells, 3)`` rows (2D directions padded with z = 0).
 
     Args:
-        spec: a vector (tuple of floats), a :class:`~jaxelastic.scene.schema.FibreCellData`
-            or a tuple of :class:`~jaxelastic.scene.schema.FibreRegion`.
+        spec: a vector (tuple of floats), a :class:`~jaxelastic.scene.schema.FibreCellData`,
+            a :class:`~jaxelastic.scene.schema.FibreRule` or a tuple of
+            :class:`~jaxelastic.scene.schema.FibreRegion`.
         raw: cache of the mesh file's volume cell data (filled on first use).
     """
     if isinstance(spec, FibreCellData):
         a = _cell_data_fibres(scene, f"[material].{key}.cell_data", spec.cell_data, mesh, md, raw)
+    elif isinstance(spec, FibreRule):
+        a = _rule_fibres(scene, key, spec, mesh)
     elif spec and isinstance(spec[0], FibreRegion):
         a = _region_fibres(scene, key, spec, mesh)
     else:
@@ -379,6 +384,20 @@ def _fibre_field(scene: Scene, key: str, spec, mesh: Mesh, md: MeshData | None, 
     if a.shape[1] == 2:
         a = np.concatenate([a, np.zeros((a.shape[0], 1))], axis=1)
     return a / np.linalg.norm(a, axis=1, keepdims=True)
+
+
+def _rule_fibres(scene: Scene, key: str, rule: FibreRule, mesh: Mesh) -> np.ndarray:
+    """Per-cell directions ``(n_cells, 3)`` of the helix rule at the cell centroids (the
+    corners' mean): the fibre (``"helix"``) or the sheet normal (``"transmural"``)."""
+    if mesh.dim != 3:
+        raise scene.error(
+            f"[material].{key}: rule = {rule.rule!r} needs a 3D mesh (an ellipsoidal "
+            f"ventricle), the mesh is {mesh.dim}D"
+        )
+    cells = np.asarray(mesh.cells)[:, : mesh.dim + 1]
+    centroids = np.asarray(mesh.points, dtype=np.float64)[cells].mean(axis=1)
+    f0, s0 = helix_fibres(centroids, rule.endo_radii, rule.epi_radii, rule.endo, rule.epi)
+    return np.asarray(f0 if rule.rule == "helix" else s0)
 
 
 def _region_fibres(scene: Scene, key: str, regions, mesh: Mesh) -> np.ndarray:

@@ -62,6 +62,7 @@ __all__ = [
     "MaterialSpec",
     "FibreCellData",
     "FibreRegion",
+    "FibreRule",
     "Selector",
     "PlaneSelector",
     "BoxSelector",
@@ -407,12 +408,58 @@ def _default_last(v: tuple) -> tuple:
     return v
 
 
+class FibreRule(Table):
+    """Per-cell directions of the helix rule of a thick ellipsoidal ventricle (3D meshes),
+    at the cell centroids (:func:`jaxelastic.materials.helix_fibres`)."""
+
+    rule: Literal["helix", "transmural"] = Field(
+        description='"helix": the fibre sin(a) e_u + cos(a) e_v with the helix angle a linear '
+        'through the wall from endo to epi; "transmural": the outward normal of the '
+        "ellipsoid through the cell (the rule's sheet direction, for s0)"
+    )
+    endo: Number = Field(
+        default=90.0, description='helix angle on the endocardium [degrees] ("helix" only)'
+    )
+    epi: Number = Field(
+        default=-90.0, description='helix angle on the epicardium [degrees] ("helix" only)'
+    )
+    endo_radii: tuple[Positive, Positive] = Field(
+        default=(7.0, 17.0),
+        description="(short, long) radii of the endocardium, in the mesh's length unit (the "
+        "defaults: the ventricle of Land et al. 2015 in mm); the ellipsoids are centred at "
+        "the origin with their long axis along z",
+    )
+    epi_radii: tuple[Positive, Positive] = Field(
+        default=(10.0, 20.0), description="(short, long) radii of the epicardium"
+    )
+
+    @classmethod
+    def _prepare(cls, t: dict) -> dict:
+        if t.get("rule") == "transmural":
+            for k in ("endo", "epi"):
+                if k in t:
+                    raise fail(f'{{at}}.{k} is a helix angle: only for rule = "helix"')
+        return t
+
+    @model_validator(mode="after")
+    def _radii(self):
+        (a0, b0), (a1, b1) = self.endo_radii, self.epi_radii
+        if not (a0 < a1 and b0 < b1):
+            raise fail(
+                f"{{at}}: need endo_radii < epi_radii in both radii, got "
+                f"{list(self.endo_radii)} and {list(self.epi_radii)}"
+            )
+        return self
+
+
 FibreRegions = Annotated[
     tuple[FibreRegion, ...], Field(min_length=1), AfterValidator(_default_last)
 ]
 
 
 def _fibre_kind(v) -> str:
+    if isinstance(v, FibreRule) or (isinstance(v, Mapping) and "rule" in v):
+        return "~rule"
     if isinstance(v, (Mapping, BaseModel)):
         return "~table"
     if isinstance(v, (list, tuple)) and v and all(isinstance(e, (Mapping, BaseModel)) for e in v):
@@ -421,18 +468,20 @@ def _fibre_kind(v) -> str:
 
 
 if TYPE_CHECKING:
-    FibreDirection = Vector | FibreCellData | FibreRegions
+    FibreDirection = Vector | FibreCellData | FibreRule | FibreRegions
 else:
     FibreDirection = Annotated[
         Union[  # noqa: UP007
             Annotated[Vector, Tag("~array")],
             Annotated[FibreCellData, Tag("~table")],
+            Annotated[FibreRule, Tag("~rule")],
             Annotated[FibreRegions, Tag("~regions")],
         ],
         Discriminator(_fibre_kind),
     ]
-"""An HGO fibre direction: one vector for all cells, ``{ cell_data = "name" }``, or an
-array of :class:`FibreRegion` (``{ where = ..., direction = [..] }``, the default last)."""
+"""An HGO fibre direction: one vector for all cells, ``{ cell_data = "name" }``, a rule
+(``{ rule = "helix", endo = 90, epi = -90 }``, :class:`FibreRule`), or an array of
+:class:`FibreRegion` (``{ where = ..., direction = [..] }``, the default last)."""
 
 
 class MaterialSpec(Table):
@@ -486,8 +535,10 @@ class MaterialSpec(Table):
         default=None,
         description="HGO first fibre direction (reference): a vector for all cells, e.g. "
         '[1, 0, 0]; or per cell: { cell_data = "name" } (a (n_cells, 3) cell-data array of '
-        '[mesh].file) or regions [{ where = "x < 0.5", direction = [..] }, ..., '
-        "{ direction = [..] }] (cell centroids, first match wins, the default last)",
+        '[mesh].file), regions [{ where = "x < 0.5", direction = [..] }, ..., '
+        "{ direction = [..] }] (cell centroids, first match wins, the default last), or the "
+        'helix rule of an ellipsoidal ventricle { rule = "helix", endo = 90, epi = -90 } '
+        '(and { rule = "transmural" }: its sheet direction)',
     )
     a02: FibreDirection | None = Field(
         default=None, description="HGO second fibre direction (the same forms as a01)"
