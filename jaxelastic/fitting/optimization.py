@@ -77,9 +77,10 @@ class FitResult(NamedTuple):
             ``"predicted_decrease"`` (Levenberg–Marquardt: at an accepted point the
             undamped Gauss–Newton step predicts a decrease ≤ ``rtol``·cost + ``atol``;
             converged), ``"solve_failed"`` (the last line search, or the rejected
-            Levenberg–Marquardt steps, ended on trial points whose solves failed: not
-            converged, see ``failures``), ``"stalled"`` (no acceptable step),
-            ``"max_iter"`` or ``"callback"`` (the callback asked to stop).
+            Levenberg–Marquardt steps since the last two accepted points, ran into
+            trial points whose solves failed: not converged, see ``failures``),
+            ``"stalled"`` (no acceptable step), ``"max_iter"`` or ``"callback"`` (the
+            callback asked to stop).
         iterations: optimiser iterations k (Levenberg–Marquardt: accepted steps).
         loss_history: ``(k + 1,)`` loss at each iterate.
         param_history: every leaf per iterate, in leaf order: ``(k + 1, n_leaves)`` for
@@ -302,7 +303,8 @@ def _levenberg_marquardt(tr: _Tracker, settings: LMSettings, z0, callback, max_i
     returns ``(z, accepted iterations, stop reason, warm starts)``."""
     warms: tuple = tr.obj.initial_warms()
     trial_warms: tuple = warms
-    failed = k = 0  # failed trials since the last accepted point; accepted steps
+    # failed trials since the last accepted point and in the window before it; accepted steps
+    failed = before = k = 0
 
     def linearize(z):
         nonlocal trial_warms, failed
@@ -312,8 +314,8 @@ def _levenberg_marquardt(tr: _Tracker, settings: LMSettings, z0, callback, max_i
         return r, J, ok
 
     def accepted(s: LMState) -> bool:
-        nonlocal warms, failed, k
-        warms, failed = trial_warms, 0
+        nonlocal warms, failed, before, k
+        warms, failed, before = trial_warms, 0, failed
         r, J = np.asarray(s.r), np.asarray(s.J)
         f = float(r @ r)  # the loss Σ w_c·loss_c = ‖r‖²
         first = int(s.iteration) == 0
@@ -342,7 +344,7 @@ def _levenberg_marquardt(tr: _Tracker, settings: LMSettings, z0, callback, max_i
         reason = "predicted_decrease"
     elif reason == "max_iterations":
         reason = "max_iter"
-    elif reason == "stalled" and failed:  # failed trials among the rejected ones
+    elif reason == "stalled" and failed + before:  # the last steps ran into failed solves
         reason = "solve_failed"
     return jnp.asarray(s.z), k, reason, warms
 
