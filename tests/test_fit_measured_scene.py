@@ -266,8 +266,15 @@ def test_scene_fit_of_young_modulus_from_a_support_moment(tmp_path):
     (m,), _ = case.predictions(truth, case.initial_warm(), F.FIT_SOLVER, je.ImplicitAdjoint())
     m = np.asarray(m)
     assert np.all(np.abs(m) > 1.0)
+    sm = 0.01 * float(np.sqrt(np.mean(m**2)))  # 1 % noise
+    m = m + sm * np.random.default_rng(2).standard_normal(3)
     rows = "".join(f"{f},{v!r}\n" for f, v in zip(FACTORS, m.tolist(), strict=True))
     (tmp_path / "moment.csv").write_text("factor,moment\n" + rows)
-    s = run_fit(_scene(tmp_path, [MOMENT], fields=("E",)), tmp_path / "out", progress=False)
+    obs = {**MOMENT, "sigma": repr(sm)}
+    path = _scene(tmp_path, [obs], fields=("E",), extra='optimizer = "lm"\n')
+    s = run_fit(path, tmp_path / "out", progress=False)
     assert s["status"] == "ok" and s["result"]["converged"]
-    assert abs(s["fitted"]["E"] / 1000.0 - 1.0) < 1e-6
+    assert abs(s["fitted"]["E"] - 1000.0) <= 3 * s["standard_errors"]["E"]
+    assert s["result"]["stop_reason"] == "predicted_decrease"
+    assert abs(s["fitted"]["E"] / 1000.0 - 1.0) < 0.01  # 1 % noise on three values
+    assert "E = " in highlights(s)

@@ -1202,7 +1202,9 @@ class FitSpec(Table):
     seed: Annotated[Integer, Field(ge=0)] = Field(
         default=0, description="seed of markers and noise"
     )
-    optimizer: Literal["lbfgs", "adam"] = Field(default="lbfgs", description='"lbfgs" or "adam"')
+    optimizer: Literal["lbfgs", "adam", "lm"] = Field(
+        default="lbfgs", description='"lbfgs", "adam" or "lm" (Levenberg–Marquardt)'
+    )
     learning_rate: Positive = Field(default=0.05, description='step size of "adam"')
     max_iter: Annotated[Integer, Field(ge=0)] = Field(
         default=100, description="optimiser iterations"
