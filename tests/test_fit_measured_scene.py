@@ -203,3 +203,78 @@ def test_scene_fit_of_a_plate_from_reaction_and_dic(tmp_path):
     assert rms[0] < 3 * sf and rms[1] < 3 * su
     assert (tmp_path / "out" / "fit.png").stat().st_size > 10_000
     assert "E = " in highlights(s) and "±" in highlights(s)
+
+
+MOMENT = {
+    "kind": '"moment"',
+    "file": '"moment.csv"',
+    "sigma": "0.01",
+    "nodes": '{ plane = { axis = "x", value = 3.0 } }',
+    "origin": "[3.0, 0.0]",
+}
+
+
+def test_moment_entries_and_files_name_key_file_and_row(tmp_path):
+    """``kind = "moment"``: its keys checked by the schema, its CSV ``factor,moment`` by
+    the reader, each error naming the entry, the file and the row."""
+    _csv(tmp_path, GOOD_ROWS, header="factor,force")
+    (tmp_path / "moment.csv").write_text((tmp_path / "force.csv").read_text())
+    _refused(tmp_path, [MOMENT], r"\('moment.csv'\): the first line must be 'factor,moment'")
+    text = "factor,moment\n" + "".join(f"{f},{v}\n" for f, v in GOOD_ROWS)
+    (tmp_path / "moment.csv").write_text(text.replace(",10.0", ",nan"))
+    _refused(tmp_path, [MOMENT], r"observation\[0\] \('moment.csv'\): row 3 .*not finite")
+    (tmp_path / "moment.csv").write_text(text)
+    _refused(tmp_path, [{**MOMENT, "axis": "[0.0, 0.0, 1.0]"}], r"axis: a 2D moment .*omit axis")
+    _refused(tmp_path, [{**MOMENT, "origin": "[3.0, 0.0, 1.0]"}], r"origin must have 2 comp")
+    _refused(tmp_path, [{k: v for k, v in MOMENT.items() if k != "nodes"}],
+             r"kind = 'moment' needs nodes")  # fmt: skip
+    _refused(tmp_path, [{**REACTION, "origin": "[0.0, 0.0]"}],
+             r"axis and origin belong to kind = 'moment' only")  # fmt: skip
+    _refused(tmp_path, [{**MOMENT, "direction": "[1.0, 0.0]"}],
+             r"direction belongs to kind = 'reaction' only")  # fmt: skip
+    # a good entry reads into the Moment observation of its nodes, axis and origin
+    from jaxelastic.fitting import Moment
+    from jaxelastic.scene.measurements import read_observation
+    from jaxelastic.scene.problem import build
+
+    s = load_scene(_scene(tmp_path, [MOMENT]))
+    assert s.spec.fit is not None
+    case = s.spec.fit.case[0]
+    bt = build(s)
+    o = read_observation(s, "[[fit.case]][0].observation[0]", case.observation[0], case, bt)
+    assert isinstance(o, Moment)
+    right = np.flatnonzero(np.isclose(np.asarray(bt.mesh.points)[:, 0], 3.0))
+    np.testing.assert_array_equal(np.asarray(o.nodes), right)
+    np.testing.assert_allclose(np.asarray(o.data), [v for _, v in GOOD_ROWS])
+    np.testing.assert_allclose(np.asarray(o.origin), [3.0, 0.0])
+
+
+@pytest.mark.extended
+def test_scene_fit_of_young_modulus_from_a_support_moment(tmp_path):
+    import jax.numpy as jnp
+
+    import jaxelastic as je
+    from jaxelastic import fitting as F
+    from jaxelastic import materials as M
+    from jaxelastic.scene.problem import build
+
+    bt = build(load_scene(_scene(tmp_path, [REACTION])))
+    right = np.flatnonzero(np.isclose(np.asarray(bt.mesh.points)[:, 0], 3.0))
+    o = F.Moment(jnp.asarray(right), jnp.asarray([1.0]), jnp.asarray([3.0, 0.0]), jnp.zeros(3))
+    case = F.LoadPathCase(bt.potential, bt.bc, FACTORS, (o,))
+    truth = M.Lame.from_E_nu(1000.0, 0.2, dim=2)
+    (m,), _ = case.predictions(truth, case.initial_warm(), F.FIT_SOLVER, je.ImplicitAdjoint())
+    m = np.asarray(m)
+    assert np.all(np.abs(m) > 1.0)
+    sm = 0.01 * float(np.sqrt(np.mean(m**2)))  # 1 % noise
+    m = m + sm * np.random.default_rng(2).standard_normal(3)
+    rows = "".join(f"{f},{v!r}\n" for f, v in zip(FACTORS, m.tolist(), strict=True))
+    (tmp_path / "moment.csv").write_text("factor,moment\n" + rows)
+    obs = {**MOMENT, "sigma": repr(sm)}
+    path = _scene(tmp_path, [obs], fields=("E",), extra='optimizer = "lm"\n')
+    s = run_fit(path, tmp_path / "out", progress=False)
+    assert s["status"] == "ok" and s["result"]["converged"]
+    assert abs(s["fitted"]["E"] - 1000.0) <= 3 * s["standard_errors"]["E"]
+    assert s["result"]["stop_reason"] == "predicted_decrease"
+    assert abs(s["fitted"]["E"] / 1000.0 - 1.0) < 0.01  # 1 % noise on three values
+    assert "E = " in highlights(s)

@@ -68,6 +68,32 @@ def test_failed_trial_solves_are_reported_and_not_converged():
     assert f["params"]["c01"] >= 1.5
 
 
+@dataclasses.dataclass(frozen=True)
+class UnstableResiduals(Unstable):
+    """The same with residuals ``(1, 0.01 (c01 − 2))`` for Levenberg–Marquardt."""
+
+    def residuals(self, params, warm, solver, adjoint):
+        loss, aux = self.evaluate(params, warm, solver, adjoint)
+        r = jnp.stack([jnp.ones_like(loss), 1e-2 * (params.c01 - 2.0)])
+        return jnp.where(aux.ok, r, jnp.nan), aux
+
+
+jax.tree_util.register_dataclass(UnstableResiduals, data_fields=["weight"], meta_fields=["mesh_"])
+
+
+def test_levenberg_marquardt_rejects_failed_trials_and_never_converges_on_them():
+    with pytest.warns(RuntimeWarning, match=r"case 0: LINE_SEARCH_FAILED .*at c01 = 1\.5"):
+        res = F.fit([UnstableResiduals()], P(1.0), optimizer="lm", max_iter=200)
+    assert res.stop_reason == "solve_failed" and not res.converged
+    assert res.failures and all(f["params"]["c01"] >= 1.5 for f in res.failures)
+    assert 1.0 < res.material.c01 < 1.5  # accepted points only, the loss decreasing
+    assert np.all(np.diff(res.loss_history) < 0)
+    assert res.loss_history.shape == (res.iterations + 1,)
+    # a case without residuals, or a regulariser, is refused with the alternative
+    with pytest.raises(ValueError, match=r"case 0 \(Unstable\) defines no residuals"):
+        F.fit([Unstable()], P(1.0), optimizer="lm")
+
+
 def test_a_case_that_is_not_a_pytree_gets_advice():
     with pytest.raises(TypeError, match=r"NotRegistered.*register_dataclass"):
         F.fit([NotRegistered()], P(1.0))

@@ -6,7 +6,8 @@
 * :mod:`~jaxelastic.fitting.elastic`: the (E, ν) convenience, :class:`Material`;
 * :mod:`~jaxelastic.fitting.observations`: misfit, noise, markers, nested meshes;
 * :mod:`~jaxelastic.fitting.measurements`: the observation protocol and its kinds
-  (:class:`Positions`, :class:`Points`, :class:`Reaction`, :class:`Moment`, :class:`Surface`);
+  (:class:`Positions`, :class:`Points`, :class:`Reaction`, :class:`Moment`,
+  :class:`CavityVolume`, :class:`Surface`);
 * :mod:`~jaxelastic.fitting.cases`: the case protocol, :class:`LoadCase`,
   :class:`TrajectoryCase`, :class:`LoadPathCase` (load levels with observations);
 * :mod:`~jaxelastic.fitting.objective`: the compiled objective in unconstrained variables;
@@ -29,6 +30,7 @@ from .elastic import Material as Material
 from .elastic import material_parametrization as material_parametrization
 from .identifiability import loss_hessian as loss_hessian
 from .identifiability import loss_landscape as loss_landscape
+from .measurements import CavityVolume as CavityVolume
 from .measurements import Moment as Moment
 from .measurements import Observation as Observation
 from .measurements import Points as Points
@@ -81,6 +83,7 @@ __all__ = [
     "LoadCase",
     "LoadPathCase",
     "Moment",
+    "CavityVolume",
     "Observation",
     "Points",
     "Positions",

@@ -283,7 +283,8 @@ class LoadPathCase(Case):
     never skipped. The solution of every level is then one differentiable
     :func:`jaxelastic.solve` (the sub-steps only find its start), so the gradient goes
     through every level by the implicit adjoint, one adjoint solve per level
-    (``jax.lax.scan`` over the levels: compiled once whatever their number).
+    (``jax.lax.scan`` over the levels: compiled once whatever their number). Cavity
+    pressures (``pot.pressure``) scale like the forces, ``s_k·p``.
 
     The loss is the χ² misfit ``Σ_obs Σ_levels Σ ((pred − data)/σ)²`` of the
     observations (:mod:`jaxelastic.fitting.measurements`).
@@ -333,6 +334,8 @@ class LoadPathCase(Case):
                 )
         if self.pot.contact is not None:
             raise ValueError("a LoadPathCase does not support contact terms")
+        if self.pot.pressure is not None and self.pot.pressure.kappa is not None:
+            raise ValueError("a LoadPathCase scales pressures: volume control is not supported")
         if int(self.max_cutbacks) < 0:
             raise ValueError(f"max_cutbacks must be >= 0, got {self.max_cutbacks}")
 
@@ -353,8 +356,9 @@ class LoadPathCase(Case):
     def at(self, s, params):
         """``(potential, Dirichlet)`` at load factor ``s`` and ψ parameters ``params``."""
         X = self.pot.mesh.points
-        f = self.pot.f_ext
+        f, p = self.pot.f_ext, self.pot.pressure
         pot = self.pot.replace(params=params, f_ext=None if f is None else s * f)
+        pot = pot if p is None else pot.replace(pressure=p.scaled(s))
         return pot, Dirichlet(self.bc.mask, X + s * (self.bc.values - X))
 
     def predictions(self, params, warm, solver, adjoint: ImplicitAdjoint):

@@ -30,7 +30,10 @@ Stopping, honestly:
 
 The whole iteration is one ``lax.while_loop`` compiled once per residual function (``fun``
 and ``physical`` are static: pass the same hashable callables to reuse the compilation;
-data, weights and tolerances are traced arguments).
+data, weights and tolerances are traced arguments). Residuals that are not one traceable
+function — finite-element solves with warm starts and failure reports
+(:func:`~jaxelastic.fitting.fit` with ``optimizer="lm"``) — run the same step, acceptance
+and stop tests (:func:`lm_proposal`, :func:`lm_update`) in a host loop, :func:`lm_iterate`.
 """
 
 from __future__ import annotations
@@ -46,7 +49,20 @@ import numpy as np
 
 from .uncertainty import Uncertainty, gauss_newton_uncertainty
 
-__all__ = ["LMSettings", "LeastSquaresResult", "levenberg_marquardt", "STOP_REASONS"]
+__all__ = [
+    "LMSettings",
+    "LMState",
+    "Linearization",
+    "LeastSquaresResult",
+    "STOP_REASONS",
+    "levenberg_marquardt",
+    "linearization",
+    "lm_initial",
+    "lm_iterate",
+    "lm_proposal",
+    "lm_update",
+    "traced_settings",
+]
 
 STOP_REASONS = ("running", "converged", "max_iterations", "stalled", "nonfinite")
 """``stop_reason`` values, indexed by the integer status of the compiled loop."""
@@ -105,7 +121,17 @@ class LeastSquaresResult(NamedTuple):
     wall_time: float
 
 
-class _State(NamedTuple):
+class LMState(NamedTuple):
+    """The iterate of the Levenberg–Marquardt loop (the compiled one and :func:`lm_iterate`).
+
+    Attributes:
+        z: ``(p,)`` the accepted point; r: ``(m,)`` its residuals; J: ``(m, p)`` their
+        Jacobian ``∂r/∂z``; cost: ``½‖r‖²``; pred: the undamped Gauss–Newton predicted
+        decrease at z; mu, nu: the damping and its growth factor; iteration: iterations
+        (accepted and rejected steps; −1 before the first linearisation); rejections:
+        consecutive rejected steps; status: the index into :data:`STOP_REASONS`.
+    """
+
     z: jax.Array
     r: jax.Array
     J: jax.Array
@@ -118,6 +144,22 @@ class _State(NamedTuple):
     status: jax.Array
 
 
+class Linearization(NamedTuple):
+    """The residuals at a trial point and their local linear model (:func:`linearization`).
+
+    Attributes:
+        r: ``(m,)`` residuals; ok: bool, the residuals (and J) are usable; J: ``(m, p)``
+        ``∂r/∂z``; cost: ``½‖r‖²``; pred: the undamped Gauss–Newton predicted decrease
+        ``½‖J h_GN‖²``, ``h_GN = argmin‖J h + r‖``.
+    """
+
+    r: jax.Array
+    ok: jax.Array
+    J: jax.Array
+    cost: jax.Array
+    pred: jax.Array
+
+
 def _residuals(fun, z, args):
     """``(r, ok)``: ``fun`` may return ``r`` or ``(r, ok)``; ok also needs finite r."""
     out = fun(z, *args)
@@ -125,19 +167,25 @@ def _residuals(fun, z, args):
     return r, jnp.logical_and(ok, jnp.all(jnp.isfinite(r)))
 
 
-def _linearize(fun, z, args):
-    """``(r, ok, J, cost, pred)`` at z; ``pred`` the undamped Gauss–Newton decrease."""
+def linearization(r, J, ok) -> Linearization:
+    """The :class:`Linearization` of residuals ``r (m,)`` with Jacobian ``J (m, p)``
+    (``ok`` False: a failed evaluation, rejected like a step that increases the cost)."""
+    ok = jnp.logical_and(ok, jnp.all(jnp.isfinite(r)) & jnp.all(jnp.isfinite(J)))
+    safe = jnp.where(ok, J, 0.0), jnp.where(ok, r, 0.0)  # lstsq of NaN: undefined
+    h = jnp.linalg.lstsq(safe[0], -safe[1])[0]
+    Jh = safe[0] @ h
+    return Linearization(r, ok, J, 0.5 * jnp.dot(r, r), 0.5 * jnp.dot(Jh, Jh))
+
+
+def _linearize(fun, z, args) -> Linearization:
+    """The :class:`Linearization` at z, ``J`` by :func:`jax.jacfwd`."""
 
     def with_aux(z):
         r, ok = _residuals(fun, z, args)
         return r, (r, ok)
 
     J, (r, ok) = jax.jacfwd(with_aux, has_aux=True)(z)
-    h = jnp.linalg.lstsq(J, -r)[0]
-    Jh = J @ h
-    pred = 0.5 * jnp.dot(Jh, Jh)
-    ok = jnp.logical_and(ok, jnp.all(jnp.isfinite(J)))
-    return r, ok, J, 0.5 * jnp.dot(r, r), pred
+    return linearization(r, J, ok)
 
 
 def _damped_step(J, r, mu):
@@ -151,7 +199,7 @@ def _damped_step(J, r, mu):
     return h, 0.5 * jnp.dot(h, mu * d * h - g)
 
 
-def _status(s: _State, settings: LMSettings):
+def _status(s: LMState, settings: LMSettings):
     conv = s.pred <= settings.rtol * s.cost + settings.atol
     return jnp.where(
         conv,
@@ -164,16 +212,11 @@ def _status(s: _State, settings: LMSettings):
     )
 
 
-@functools.partial(jax.jit, static_argnames=("fun", "physical"))
-def _solve(fun, physical, z0, args, settings: LMSettings):
-    """The compiled loop: final state, θ and ``∂r/∂θ`` at its z.
-
-    The residuals and their Jacobian are traced once: the first pass of the loop body
-    (``iteration = −1``, a zero step from a state of infinite cost) linearises at ``z0``.
-    """
-    m = jax.eval_shape(lambda z: _residuals(fun, z, args)[0], z0).shape[0]
+def lm_initial(z0, m: int, settings: LMSettings) -> LMState:
+    """The state before the first linearisation at ``z0`` (``m`` residuals): infinite
+    cost, iteration −1 (:func:`lm_proposal` then proposes the zero step)."""
     one = jnp.ones((), z0.dtype)
-    s0 = _State(
+    return LMState(
         z=z0,
         r=jnp.zeros((m,), z0.dtype),
         J=jnp.zeros((m, z0.shape[0]), z0.dtype),
@@ -186,35 +229,115 @@ def _solve(fun, physical, z0, args, settings: LMSettings):
         status=jnp.full((), _RUNNING, jnp.int32),
     )
 
-    def body(s: _State) -> _State:
-        first = s.iteration < 0
-        h, lin = _damped_step(s.J, s.r, s.mu)
-        h = jnp.where(first, jnp.zeros_like(h), h)  # the first pass linearises at z0
-        rt, okt, Jt, costt, predt = _linearize(fun, s.z + h, args)
-        rho = (s.cost - costt) / jnp.maximum(lin, jnp.finfo(lin.dtype).tiny)
-        accept = okt & jnp.isfinite(costt) & (costt < s.cost) & ((lin > 0) | first)
-        factor = jnp.where(first, 1.0, jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3))
-        pick = functools.partial(jnp.where, accept)
-        t = _State(
-            z=pick(s.z + h, s.z),
-            r=pick(rt, s.r),
-            J=pick(Jt, s.J),
-            cost=pick(costt, s.cost),
-            pred=pick(predt, s.pred),
-            mu=pick(s.mu * factor, s.mu * s.nu),
-            nu=pick(2.0 * one, 2.0 * s.nu),
-            iteration=s.iteration + 1,
-            rejections=jnp.where(accept, jnp.zeros_like(s.rejections), s.rejections + 1),
-            status=s.status,
-        )
-        status = jnp.where(first & ~accept, _NONFINITE, _status(t, settings))
-        return t._replace(status=status.astype(jnp.int32))
 
-    s = jax.lax.while_loop(lambda s: s.status == _RUNNING, body, s0)
+def lm_proposal(s: LMState):
+    """``(trial point, predicted decrease of the damped model)``: the damped step from
+    ``s.z`` (Marquardt's scaling), or ``s.z`` itself before the first linearisation."""
+    h, lin = _damped_step(s.J, s.r, s.mu)
+    h = jnp.where(s.iteration < 0, jnp.zeros_like(h), h)  # the first pass linearises at z0
+    return s.z + h, lin
+
+
+def lm_update(s: LMState, zt, lin, trial: Linearization, settings: LMSettings) -> LMState:
+    """The next state after evaluating the trial point ``zt`` of :func:`lm_proposal`:
+    accepted when it is usable and lowers the cost (the gain ratio ρ then scales μ by
+    ``max(1/3, 1 − (2ρ − 1)³)``), else rejected (μ ← μν, ν ← 2ν); then the stop test
+    (module docstring). ``settings`` as arrays (:func:`traced_settings`)."""
+    first = s.iteration < 0
+    rho = (s.cost - trial.cost) / jnp.maximum(lin, jnp.finfo(lin.dtype).tiny)
+    accept = trial.ok & jnp.isfinite(trial.cost) & (trial.cost < s.cost) & ((lin > 0) | first)
+    factor = jnp.where(first, 1.0, jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3))
+    pick = functools.partial(jnp.where, accept)
+    one = jnp.ones((), s.mu.dtype)
+    t = LMState(
+        z=pick(zt, s.z),
+        r=pick(trial.r, s.r),
+        J=pick(trial.J, s.J),
+        cost=pick(trial.cost, s.cost),
+        pred=pick(trial.pred, s.pred),
+        mu=pick(s.mu * factor, s.mu * s.nu),
+        nu=pick(2.0 * one, 2.0 * s.nu),
+        iteration=s.iteration + 1,
+        rejections=jnp.where(accept, jnp.zeros_like(s.rejections), s.rejections + 1),
+        status=s.status,
+    )
+    status = jnp.where(first & ~accept, _NONFINITE, _status(t, settings))
+    return t._replace(status=status.astype(jnp.int32))
+
+
+@functools.partial(jax.jit, static_argnames=("fun", "physical"))
+def _solve(fun, physical, z0, args, settings: LMSettings):
+    """The compiled loop: final state, θ and ``∂r/∂θ`` at its z.
+
+    The residuals and their Jacobian are traced once: the first pass of the loop body
+    (``iteration = −1``, a zero step from a state of infinite cost) linearises at ``z0``.
+    """
+    m = jax.eval_shape(lambda z: _residuals(fun, z, args)[0], z0).shape[0]
+
+    def body(s: LMState) -> LMState:
+        zt, lin = lm_proposal(s)
+        return lm_update(s, zt, lin, _linearize(fun, zt, args), settings)
+
+    s = jax.lax.while_loop(lambda s: s.status == _RUNNING, body, lm_initial(z0, m, settings))
     theta = physical(s.z, *args)
     dtheta = jax.jacfwd(physical)(s.z, *args)  # (p, p)
     J_theta = jnp.linalg.solve(dtheta.T, s.J.T).T  # ∂r/∂θ = ∂r/∂z (∂θ/∂z)⁻¹
     return s, theta, J_theta
+
+
+_proposal_jit = jax.jit(lm_proposal)
+_update_jit = jax.jit(lm_update)
+
+
+def lm_iterate(
+    linearize: Callable, z0, settings: LMSettings, accepted: Callable | None = None
+) -> tuple[LMState, bool]:
+    """The Levenberg–Marquardt iteration on the host, for residuals that are not one
+    traceable function (finite-element solves with warm starts and failure reports).
+
+    The same steps, acceptance, damping and stop tests as :func:`levenberg_marquardt`
+    (:func:`lm_proposal`, :func:`lm_update`); only the loop runs in Python.
+
+    Args:
+        linearize: ``linearize(z) -> (r (m,), J (m, p), ok)`` at a trial point (``r``
+            and ``J`` may be None when ``ok`` is False: the trial is rejected).
+        z0: ``(p,)`` initial unconstrained vector.
+        settings: :class:`LMSettings`.
+        accepted: called with the new :class:`LMState` after every accepted point (the
+            initial one included, at iteration 0); returns True to stop there (ignored
+            when the iteration stops there anyway).
+    Returns:
+        ``(final state (host values), stopped by accepted)``; ``STOP_REASONS[status]``
+        says why it stopped otherwise (``"nonfinite"``: ``linearize`` failed at z0).
+    """
+    z0 = jnp.asarray(z0)
+    traced = traced_settings(settings)
+
+    m = 0  # the number of residuals, from the first successful evaluation
+
+    def trial(z):
+        r, J, ok = linearize(z)
+        if r is None:  # a failed evaluation: rejected
+            r = jnp.full((m,), jnp.nan, z0.dtype)
+        r = jnp.asarray(r)
+        J = jnp.full((r.shape[0], z0.shape[0]), jnp.nan, r.dtype) if J is None else J
+        return linearization(r, jnp.asarray(J), jnp.asarray(bool(ok)))
+
+    zt, lin, lt = z0, jnp.zeros((), z0.dtype), trial(z0)
+    s = lm_initial(z0, int(lt.r.shape[0]), traced)
+    if not bool(lt.ok):
+        return jax.device_get(s._replace(status=jnp.int32(_NONFINITE))), False
+    m = int(lt.r.shape[0])
+    while True:
+        s = _update_jit(s, zt, lin, lt, traced)
+        stop = accepted is not None and int(s.rejections) == 0 and bool(accepted(s))
+        if int(s.status) != _RUNNING:
+            break
+        if stop:
+            return jax.device_get(s), True
+        zt, lin = _proposal_jit(s)
+        lt = trial(zt)
+    return jax.device_get(s), False
 
 
 def _identity(z, *args):
@@ -256,7 +379,7 @@ def levenberg_marquardt(
     if z0.ndim != 1 or z0.size == 0 or not bool(jnp.all(jnp.isfinite(z0))):
         raise ValueError(f"z0 must be a finite, non-empty 1-D vector, got shape {z0.shape}")
     tic = time.perf_counter()
-    s, theta, J_theta = _solve(fun, physical or _identity, z0, args, _traced(settings))
+    s, theta, J_theta = _solve(fun, physical or _identity, z0, args, traced_settings(settings))
     s, theta, J_theta = jax.device_get((s, theta, J_theta))
     wall = time.perf_counter() - tic
     status = int(s.status)
@@ -281,7 +404,7 @@ def levenberg_marquardt(
     )
 
 
-def _traced(settings: LMSettings) -> LMSettings:
+def traced_settings(settings: LMSettings) -> LMSettings:
     """Settings as arrays (traced arguments: new tolerances do not recompile)."""
     floats = np.float64, np.float64, np.int32, np.int32, np.float64
     return LMSettings._make(t(v) for t, v in zip(floats, settings, strict=True))

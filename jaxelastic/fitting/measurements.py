@@ -16,6 +16,9 @@ Theory*, §3.2). Kinds:
   (force–displacement curves);
 * :class:`Moment`: the resultant support moment on a node set about an axis through a
   point [N·m] (torsion tests);
+* :class:`CavityVolume`: the volume enclosed by a cavity's deformed boundary surface
+  [m³] (:meth:`Pressure.volumes <jaxelastic.mechanics.pressure.Pressure.volumes>`;
+  pressure–volume curves of a ventricle or a balloon);
 * :class:`Surface`: a measured point cloud of the deformed shape without correspondence:
   the signed distance of each point to the nearest boundary facet of the deformed mesh
   (point-to-triangle in 3D, point-to-segment in 2D; Ericson 2005, *Real-Time Collision
@@ -36,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..mechanics.pressure import Pressure, pressure_term
 from ..mesh import boundary_facets
 from ..mesh.elements import TET_EDGES, TRI_EDGES
 
@@ -46,6 +50,7 @@ __all__ = [
     "Points",
     "Reaction",
     "Moment",
+    "CavityVolume",
     "Surface",
     "locate_points",
     "point_to_facet_distance",
@@ -282,6 +287,59 @@ class Moment(Observation):
 
 
 _register(Moment, ["nodes", "axis", "origin", "data", "sigma"])
+
+
+@dataclasses.dataclass(frozen=True)
+class CavityVolume(Observation):
+    """The volumes of cavities at the deformed positions (pressure–volume curves):
+    ``V_s(x) = −(1/d) ∫_{S_s} (x − c_s)·n da`` of each surface of ``cavity``, closed by
+    the cone to its point ``c_s`` (:mod:`jaxelastic.mechanics.pressure`; an area per unit
+    thickness in 2D).
+
+    Build with :meth:`at`, or from the pressure term that loads the cavity
+    (``CavityVolume(pot.pressure, volumes, sigma)``: its pressures are not used).
+
+    Attributes:
+        cavity: :class:`~jaxelastic.mechanics.pressure.Pressure` whose surfaces bound the
+            cavities (``n_s`` of them).
+        data: ``(n_levels,)`` measured volumes of a single cavity, or ``(n_levels, n_s)``
+            [m³].
+        sigma: standard deviation [m³].
+    """
+
+    cavity: Pressure
+    data: Any
+    sigma: Any = 1.0
+    kind: ClassVar[str] = "cavity_volume"
+
+    @classmethod
+    def at(cls, mesh, facets, volumes, sigma, origin=None) -> CavityVolume:
+        """The cavity bounded by ``facets`` (boundary facets of ``mesh``, one ``(m, k)``
+        array or a list, one per cavity) closed at ``origin`` (default: the centroid of
+        the rim, see :func:`~jaxelastic.mechanics.pressure.pressure_term`), measured
+        ``volumes`` [m³] at every level."""
+        term = pressure_term(mesh, facets, 0.0, origin, what="cavity volume")
+        return cls(term, jnp.asarray(volumes, mesh.points.dtype), sigma)
+
+    def predict(self, state: SolvedState, level_data=None):
+        v = self.cavity.volumes(state.x)
+        return v[0] if np.ndim(self.data) == 1 else v
+
+    def check(self) -> None:
+        """Also refuse data that is not ``(n_levels,)`` for one cavity or
+        ``(n_levels, n_s)``."""
+        super().check()
+        n_s, shape = int(self.cavity.pressure.shape[0]), np.shape(self.data)
+        ok = (len(shape) == 1 and n_s == 1) or (len(shape) == 2 and shape[1] == n_s)
+        if not ok:
+            want = "(n_levels,) or " if n_s == 1 else ""
+            raise ValueError(
+                f"cavity_volume observation: data must be {want}(n_levels, {n_s}) for "
+                f"{n_s} cavit{'y' if n_s == 1 else 'ies'}, got shape {shape}"
+            )
+
+
+_register(CavityVolume, ["cavity", "data", "sigma"])
 
 
 @dataclasses.dataclass(frozen=True)

@@ -78,6 +78,17 @@ def _residual_jvp(z, dz, pz, cases, warms, solvers, adjoint):
     return r, dr, auxs
 
 
+def _add_counts(total: tuple, auxs: tuple) -> tuple:
+    """``auxs`` (the latest pass's) with the Newton and linear iterations of ``total`` added."""
+    return tuple(
+        a._replace(
+            newton_steps=a.newton_steps + t.newton_steps,
+            linear_iterations=a.linear_iterations + t.linear_iterations,
+        )
+        for t, a in zip(total, auxs, strict=True)
+    )
+
+
 def fitted_values(pz: Parametrization, z) -> tuple[jax.Array, tuple[str, ...]]:
     """The fitted parameters at ``z`` in their own units, ``(p,)`` (region leaves one value
     per region), and their names (``"c10"``, ``"E[1]"``, …)."""
@@ -187,6 +198,32 @@ class Objective(NamedTuple):
         """Whether every case weighs its residuals by measurement standard deviations."""
         return all(bool(getattr(c, "sigma_known", False)) for c in self.cases)
 
+    def linearize(self, z, warms=None):
+        """``(r (m,), J (m, n), auxs)`` at ``z``: the residuals and their Jacobian with
+        respect to the unconstrained variables, one forward-mode pass through the solves per
+        variable (implicit tangents; the passes after the first start from its solutions).
+        When a solve fails the first pass stops: r and J are then None and ``auxs[i].ok``
+        says which case failed (``auxs`` sum the Newton and linear iterations of the passes).
+
+        Raises:
+            NotImplementedError: a case has no residuals.
+        """
+        z = jnp.asarray(z)
+        warms = self.initial_warms() if warms is None else tuple(warms)
+        a = self.adjoint
+        fwd = ImplicitAdjoint(rtol=a.rtol, max_iter=a.max_iter, mode="forward")
+        cols: list[np.ndarray] = []
+        r, total = None, ()
+        for j in range(z.shape[0]):
+            dz = jnp.zeros_like(z).at[j].set(1.0)
+            r, dr, auxs = _residual_jvp(z, dz, self.pz, self.cases, warms, self.solvers, fwd)
+            total = _add_counts(total, auxs) if total else tuple(auxs)
+            if not all(bool(a.ok) for a in auxs):
+                return None, None, total
+            warms = tuple(a.warm for a in auxs)
+            cols.append(np.asarray(dr))
+        return np.asarray(r), np.stack(cols, axis=1), total
+
     def residuals_and_jacobian(self, z, warms=None):
         """``(r (m,), J (m, p))`` at ``z``: the residuals and their Jacobian with respect to
         the fitted parameters in their own units (:func:`fitted_values`), one
@@ -196,20 +233,12 @@ class Objective(NamedTuple):
             GradientError: a solve failed. NotImplementedError: a case has no residuals.
         """
         z = jnp.asarray(z)
-        warms = self.initial_warms() if warms is None else tuple(warms)
-        a = self.adjoint
-        fwd = ImplicitAdjoint(rtol=a.rtol, max_iter=a.max_iter, mode="forward")
-        cols, r = [], None
-        for j in range(z.shape[0]):
-            dz = jnp.zeros_like(z).at[j].set(1.0)
-            r, dr, auxs = _residual_jvp(z, dz, self.pz, self.cases, warms, self.solvers, fwd)
+        r, Jz, auxs = self.linearize(z, warms)
+        if r is None or Jz is None:
             bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
-            if bad:
-                raise GradientError(f"forward solve failed in case(s) {bad} at the optimum")
-            cols.append(np.asarray(dr))
+            raise GradientError(f"forward solve failed in case(s) {bad} at the optimum")
         D = np.asarray(jax.jacfwd(lambda z: fitted_values(self.pz, z)[0])(z))  # dθ/dz
-        Jz = np.stack(cols, axis=1)
-        return np.asarray(r), np.linalg.solve(D.T, Jz.T).T
+        return r, np.linalg.solve(D.T, Jz.T).T
 
     def uncertainty(self, z, warms=None) -> tuple[Uncertainty, tuple[str, ...], np.ndarray, Any]:
         """``(Uncertainty, names, values, residuals)`` of the fitted parameters at ``z``

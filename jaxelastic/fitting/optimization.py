@@ -1,10 +1,13 @@
-"""Material identification with optax: :func:`fit` and its :class:`FitResult`.
+"""Material identification: :func:`fit` and its :class:`FitResult`.
 
 :func:`fit` minimises ``Σ_c w_c·loss_c + regulariser`` over the unconstrained variables of
 a :class:`~jaxelastic.fitting.parameters.Parametrization` (any ψ parameter pytree, or
 (E, ν) through :class:`~jaxelastic.fitting.Material`) with optax — L-BFGS directions with a
-host backtracking line search by default, or any optax transformation — warm-starting
-every forward solve from the previous iterate's solution of the same case.
+host backtracking line search by default, or any optax transformation — or, for a sum of
+squared residuals, by Levenberg–Marquardt (``optimizer="lm"``: the Gauss–Newton model from
+forward-mode Jacobians through the solves, the iteration of
+:mod:`jaxelastic.fitting.least_squares`), warm-starting every forward solve from the
+previous iterate's solution of the same case.
 """
 
 from __future__ import annotations
@@ -20,13 +23,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..solvers import GradientError, ImplicitAdjoint, Newton, Status
+from .cases import Case
 from .elastic import Material
+from .least_squares import STOP_REASONS, LMSettings, LMState, lm_iterate
 from .objective import FIT_SOLVER, Objective, fitted_values, make_objective
 from .uncertainty import Uncertainty
 
 __all__ = ["FitResult", "fit", "describe_failure"]
 
-_CONVERGED = ("gtol", "ftol", "xtol", "roundoff")
+_CONVERGED = ("gtol", "ftol", "xtol", "roundoff", "predicted_decrease")
 _ARMIJO = 1e-4
 _ROUNDOFF = 1e-12  # predicted decrease below this × loss: no measurable progress possible
 
@@ -68,11 +73,15 @@ class FitResult(NamedTuple):
             solves).
         stop_reason: ``"gtol"``, ``"ftol"``, ``"xtol"``, ``"roundoff"`` (the line search's
             predicted decrease fell below 1e-12 × loss with every trial solved: no
-            measurable progress is possible; counted as converged), ``"solve_failed"``
-            (the last line search ended on trial points whose solves failed: not
-            converged, see ``failures``), ``"stalled"`` (no acceptable step),
-            ``"max_iter"`` or ``"callback"`` (the callback asked to stop).
-        iterations: optimiser iterations k.
+            measurable progress is possible; counted as converged),
+            ``"predicted_decrease"`` (Levenberg–Marquardt: at an accepted point the
+            undamped Gauss–Newton step predicts a decrease ≤ ``rtol``·cost + ``atol``;
+            converged), ``"solve_failed"`` (the last line search, or the rejected
+            Levenberg–Marquardt steps since the last two accepted points, ran into
+            trial points whose solves failed: not converged, see ``failures``),
+            ``"stalled"`` (no acceptable step), ``"max_iter"`` or ``"callback"`` (the
+            callback asked to stop).
+        iterations: optimiser iterations k (Levenberg–Marquardt: accepted steps).
         loss_history: ``(k + 1,)`` loss at each iterate.
         param_history: every leaf per iterate, in leaf order: ``(k + 1, n_leaves)`` for
             scalars (``(k + 1, 2)`` for (E, ν)), ``(k + 1, n_leaves, n_regions)`` with
@@ -167,6 +176,17 @@ class _Tracker:
             self._failed(z, auxs, solved)
         ok = all(solved) and bool(jnp.all(jnp.isfinite(g)))
         return float(f), auxs, g, ok and np.isfinite(float(f))
+
+    def linearize(self, z, warms):
+        """``(r, J, auxs, ok)`` at z (:meth:`Objective.linearize`); ok: every solve
+        converged (r and J are None otherwise)."""
+        r, J, auxs = self.obj.linearize(z, warms)
+        self.counts[0] += [int(a.newton_steps) for a in auxs]
+        self.counts[1] += [int(a.linear_iterations) for a in auxs]
+        solved = [bool(a.ok) for a in auxs]
+        if not all(solved):
+            self._failed(z, auxs, solved)
+        return r, J, auxs, r is not None
 
     def _failed(self, z, auxs, solved) -> None:
         vals, names = fitted_values(self.obj.pz, jnp.asarray(z))
@@ -278,6 +298,81 @@ def _optimize(tr: _Tracker, optimizer, line_search, z, tol, callback, max_iter, 
             return z, k, "callback", warms
 
 
+def _levenberg_marquardt(tr: _Tracker, settings: LMSettings, z0, callback, max_iter, bar):
+    """Levenberg–Marquardt from z0 (:func:`~jaxelastic.fitting.least_squares.lm_iterate`);
+    returns ``(z, accepted iterations, stop reason, warm starts)``."""
+    warms: tuple = tr.obj.initial_warms()
+    trial_warms: tuple = warms
+    # failed trials since the last accepted point and in the window before it; accepted steps
+    failed = before = k = 0
+
+    def linearize(z):
+        nonlocal trial_warms, failed
+        r, J, auxs, ok = tr.linearize(z, warms)
+        trial_warms = tuple(a.warm for a in auxs)
+        failed += 0 if ok else 1
+        return r, J, ok
+
+    def accepted(s: LMState) -> bool:
+        nonlocal warms, failed, before, k
+        warms, failed, before = trial_warms, 0, failed
+        r, J = np.asarray(s.r), np.asarray(s.J)
+        f = float(r @ r)  # the loss Σ w_c·loss_c = ‖r‖²
+        first = int(s.iteration) == 0
+        if not first:
+            k += 1
+            if bar is not None:
+                bar.update(1)
+        tr.record(s.z, f, 2.0 * J.T @ r)
+        if bar is not None:
+            bar.set_postfix(loss=f"{f:.3e}", grad=f"{tr.hist['g'][-1]:.1e}", refresh=False)
+        if first or callback is None:
+            return False
+        return bool(callback(k, tr.obj.params(s.z), f))
+
+    s, stopped = lm_iterate(linearize, z0, settings._replace(max_iterations=max_iter), accepted)
+    reason = STOP_REASONS[int(s.status)]
+    if reason == "nonfinite":
+        what = "; ".join(describe_failure(x) for x in tr.failures) or "non-finite residuals"
+        raise GradientError(
+            f"forward solve failed at the initial guess: {what}. Start closer to the data "
+            "(initial parameters), or apply the load in more levels"
+        )
+    if stopped:
+        reason = "callback"
+    elif reason == "converged":
+        reason = "predicted_decrease"
+    elif reason == "max_iterations":
+        reason = "max_iter"
+    elif reason == "stalled" and failed + before:  # the last steps ran into failed solves
+        reason = "solve_failed"
+    return jnp.asarray(s.z), k, reason, warms
+
+
+def _lm_settings(optimizer, regularization: float, cases) -> LMSettings | None:
+    """The :class:`LMSettings` of ``optimizer`` (None: not Levenberg–Marquardt); refuses
+    what a sum of squared residuals cannot express."""
+    if isinstance(optimizer, LMSettings):
+        settings = optimizer
+    elif isinstance(optimizer, str) and optimizer == "lm":
+        settings = LMSettings()
+    else:
+        return None
+    if regularization:
+        raise ValueError(
+            "optimizer='lm' minimises a sum of squared residuals, which the regulariser is "
+            "not: use optimizer='lbfgs' with regularization > 0"
+        )
+    for i, c in enumerate(cases):
+        method = getattr(type(c), "residuals", None)
+        if method is None or method is Case.residuals:
+            raise ValueError(
+                f"optimizer='lm' needs residuals of every case; case {i} "
+                f"({type(c).__name__}) defines no residuals(): use optimizer='lbfgs'"
+            )
+    return settings
+
+
 def fit(
     cases: Sequence,
     init,
@@ -326,9 +421,17 @@ def fit(
             compiled value-and-gradient evaluation, reused as the next iterate, so the
             solver is compiled once); ``"adam"`` (``optax.adam(learning_rate)``) or any
             optax ``GradientTransformation``: updates applied as they come, halved only
-            when a forward solve fails.
+            when a forward solve fails; ``"lm"`` or an
+            :class:`~jaxelastic.fitting.LMSettings`: Levenberg–Marquardt on the cases'
+            residuals (every case needs ``residuals()``; no regulariser), each trial point
+            linearised by one forward-mode pass through the solves per fitted value
+            (:meth:`Objective.linearize`), stopped by the settings' tests (``rtol``,
+            ``atol``, ``max_rejections``; :mod:`jaxelastic.fitting.least_squares`), not by
+            ``gtol``/``ftol``/``xtol``. Few parameters, a least-squares χ²: it converges
+            quadratically near a well-fitting optimum where L-BFGS crawls on a flat one.
         learning_rate: Adam's step in the unconstrained variables.
-        max_iter: maximum optimiser iterations.
+        max_iter: maximum optimiser iterations (Levenberg–Marquardt: accepted and
+            rejected steps together).
         gtol: stop (converged) when ``‖∇_z loss‖ ≤ gtol``.
         ftol: stop (converged) when ``loss ≤ ftol``.
         xtol: stop (converged) when an update moves z by ``≤ xtol`` (max norm).
@@ -356,17 +459,21 @@ def fit(
     kw: dict[str, Any] = dict(transforms=transforms, regions=regions, fields=fields, mesh=mesh)
     kw.update(plane=plane, regularization=regularization, reg_kind=reg_kind)
     obj = make_objective(cases, init, solver=solver, adjoint=adjoint, **kw)
-    line_search = optimizer == "lbfgs"
-    if isinstance(optimizer, str):
-        optimizer = _named_optimizer(optimizer, float(learning_rate))
     tr = _Tracker(obj)
-    tols = (gtol, ftol, xtol)
-    run = functools.partial(_optimize, tr, optimizer, line_search, obj.z0, tols, callback)
+    lm = _lm_settings(optimizer, regularization, obj.cases)
+    if lm is not None:
+        run = functools.partial(_levenberg_marquardt, tr, lm, obj.z0, callback)
+    else:
+        line_search = optimizer == "lbfgs"
+        if isinstance(optimizer, str):
+            optimizer = _named_optimizer(optimizer, float(learning_rate))
+        tols = (gtol, ftol, xtol)
+        run = functools.partial(_optimize, tr, optimizer, line_search, obj.z0, tols, callback)
     z, k, reason, warms = _with_progress(run, max_iter, progress)
     if reason == "solve_failed":
         last = [describe_failure(f) for f in tr.failures[-len(obj.cases) :]]
         warnings.warn(
-            "fit stopped without converging: the trial solves of its last line search "
+            "fit stopped without converging: the solves of its last trial steps "
             f"failed ({'; '.join(last)}); the material may be unstable there: bound the "
             "parameters (transforms), start elsewhere or use more load levels",
             RuntimeWarning,

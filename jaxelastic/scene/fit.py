@@ -655,7 +655,8 @@ def _observation_panel(ax, case, o, pred) -> None:
     if o.kind in ("reaction", "moment"):
         ax.plot(f, data, "o", label="measured")
         ax.plot(f, pred, "-", label="fitted model")
-        ax.set(xlabel="load factor", ylabel="force [N]", title=f"{o.kind}")
+        unit = "moment [N·m]" if o.kind == "moment" else "force [N]"
+        ax.set(xlabel="load factor", ylabel=unit, title=f"{o.kind}")
         ax.legend(fontsize=8)
         return
     if o.kind == "points":

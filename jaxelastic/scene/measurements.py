@@ -4,6 +4,8 @@ One entry per load factor of the case (the layouts the schema documents):
 
 * ``reaction``: CSV with the header ``factor,force``, one row per load factor (in the
   order of ``load_factors``), the force along ``direction`` [N];
+* ``moment``: CSV with the header ``factor,moment``, likewise, the support moment of
+  ``nodes`` about ``axis`` (3D; out of plane in 2D) through ``origin`` [N·m];
 * ``points``: NPZ with ``points`` ``(n, dim)`` rest coordinates [m] and ``displacements``
   ``(n_levels, n, dim)`` [m] (components not in ``components`` are ignored);
 * ``positions``: NPZ with ``nodes`` ``(n,)`` and ``positions`` ``(n_levels, n, dim)`` [m];
@@ -76,12 +78,14 @@ def _shape(scene: Scene, where: str, name: str, a: np.ndarray, expected: tuple) 
         raise scene.error(f"{where}: {name} must have shape {want}, got {a.shape}")
 
 
-def _reaction(scene, key, where, path, spec: FitObservation, factors, bt: Built):
+def _curve(scene, where: str, path: str, column: str, factors) -> np.ndarray:
+    """The ``(n_levels,)`` values of a CSV ``factor,<column>`` with one row per load factor
+    (SceneError naming the file and the row of a bad header, row count, value or factor)."""
     try:
         with open(path, encoding="utf-8") as fh:
             header = fh.readline().strip().replace(" ", "")
-        if header != "factor,force":
-            raise scene.error(f"{where}: the first line must be 'factor,force', got {header!r}")
+        if header != f"factor,{column}":
+            raise scene.error(f"{where}: the first line must be 'factor,{column}', got {header!r}")
         rows = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     except (OSError, ValueError) as e:
         raise scene.error(f"{where}: cannot read the CSV file: {e}") from None
@@ -99,6 +103,11 @@ def _reaction(scene, key, where, path, spec: FitObservation, factors, bt: Built)
         raise scene.error(
             f"{where}: row {i + 1}: factor {rows[i, 0]:g} but load_factors[{i}] = {factors[i]:g}"
         )
+    return rows[:, 1]
+
+
+def _reaction(scene, key, where, path, spec: FitObservation, factors, bt: Built):
+    force = _curve(scene, where, path, "force", factors)
     assert spec.nodes is not None and spec.direction is not None  # schema
     nodes = select_nodes(scene, f"{key}.nodes", spec.nodes, bt.mesh, bt.mesh_data)
     d = np.asarray(spec.direction, dtype=np.float64)
@@ -106,7 +115,32 @@ def _reaction(scene, key, where, path, spec: FitObservation, factors, bt: Built)
         raise scene.error(f"{where}: direction must have {bt.mesh.dim} components")
     dt = bt.mesh.points.dtype
     e = jnp.asarray(d / np.linalg.norm(d), dt)
-    return fitting.Reaction(jnp.asarray(nodes), e, jnp.asarray(rows[:, 1], dt), spec.sigma)
+    return fitting.Reaction(jnp.asarray(nodes), e, jnp.asarray(force, dt), spec.sigma)
+
+
+def _moment(scene, key, where, path, spec: FitObservation, factors, bt: Built):
+    moment = _curve(scene, where, path, "moment", factors)
+    assert spec.nodes is not None  # schema
+    dim = bt.mesh.dim
+    if dim == 3 and spec.axis is None:
+        raise scene.error(f"{key}: kind = 'moment' in 3D needs axis = [ax, ay, az]")
+    if dim == 2 and spec.axis is not None:
+        raise scene.error(f"{key}.axis: a 2D moment is about the out-of-plane axis; omit axis")
+    axis = np.asarray([1.0] if spec.axis is None else spec.axis, dtype=np.float64)
+    if dim == 3 and axis.shape != (3,):
+        raise scene.error(f"{key}.axis must have 3 components, got {axis.size}")
+    origin = np.zeros(dim) if spec.origin is None else np.asarray(spec.origin, np.float64)
+    if origin.shape != (dim,):
+        raise scene.error(f"{key}.origin must have {dim} components, got {origin.size}")
+    nodes = select_nodes(scene, f"{key}.nodes", spec.nodes, bt.mesh, bt.mesh_data)
+    dt = bt.mesh.points.dtype
+    return fitting.Moment(
+        jnp.asarray(nodes),
+        jnp.asarray(axis / np.linalg.norm(axis), dt),
+        jnp.asarray(origin, dt),
+        jnp.asarray(moment, dt),
+        spec.sigma,
+    )
 
 
 def _points(scene, key, where, path, spec: FitObservation, factors, bt: Built):
@@ -145,7 +179,9 @@ def _surface(scene, key, where, path, spec: FitObservation, factors, bt: Built):
     return fitting.Surface.at(bt.mesh, p, spec.sigma)
 
 
-_READERS = dict(reaction=_reaction, points=_points, positions=_positions, surface=_surface)
+_READERS = dict(
+    reaction=_reaction, moment=_moment, points=_points, positions=_positions, surface=_surface
+)
 
 
 def read_observation(

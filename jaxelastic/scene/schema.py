@@ -1121,29 +1121,40 @@ class FitInitial(Table):
     bulk: Number | None = Field(default=None, description="[Pa] HGO bulk modulus")
 
 
-FIT_KINDS = ("positions", "points", "reaction", "surface")
+FIT_KINDS = ("positions", "points", "reaction", "moment", "surface")
 
 
 class FitObservation(Table):
     """A measurement of a ``[[fit.case]]``, one entry per load factor in its ``file``:
     ``reaction``: CSV with the header ``factor,force`` (force along ``direction`` [N]);
-    ``points``: NPZ with ``points`` (n, dim) rest coordinates [m] and ``displacements``
-    (n_levels, n, dim) [m]; ``positions``: NPZ with ``nodes`` (n,) and ``positions``
-    (n_levels, n, dim) [m]; ``surface``: NPZ with ``points`` (n_levels, m, dim) measured
-    deformed positions [m]."""
+    ``moment``: CSV with the header ``factor,moment`` (the support moment of ``nodes``
+    about ``axis`` through ``origin`` [N·m]); ``points``: NPZ with ``points`` (n, dim)
+    rest coordinates [m] and ``displacements`` (n_levels, n, dim) [m]; ``positions``: NPZ
+    with ``nodes`` (n,) and ``positions`` (n_levels, n, dim) [m]; ``surface``: NPZ with
+    ``points`` (n_levels, m, dim) measured deformed positions [m]."""
 
-    kind: Literal["positions", "points", "reaction", "surface"] = Field(
-        description='"positions", "points" (DIC), "reaction" (force) or "surface" (scan)'
+    kind: Literal["positions", "points", "reaction", "moment", "surface"] = Field(
+        description='"positions", "points" (DIC), "reaction" (force), "moment" (torque) or '
+        '"surface" (scan)'
     )
     file: Str = Field(description="data file, relative to the scene (layouts above)")
     sigma: Positive = Field(
         description="standard deviation of one measured value, in the data's units ([m], [N])"
     )
     nodes: Selector | None = Field(
-        default=None, description="reaction: the supported nodes (the selectors of [[dirichlet]])"
+        default=None,
+        description="reaction, moment: the supported nodes (the selectors of [[dirichlet]])",
     )
     direction: Vector | None = Field(
         default=None, description="reaction: the direction of the measured force (normalised)"
+    )
+    axis: Vector | None = Field(
+        default=None,
+        description="moment, 3D: the axis of the measured moment (normalised); 2D: omit "
+        "(the out-of-plane moment)",
+    )
+    origin: Vector | None = Field(
+        default=None, description="moment: a point of the axis [m] (default the origin)"
     )
     components: Annotated[tuple[Literal["x", "y", "z"], ...], Field(min_length=1)] | None = Field(
         default=None, description='points: the measured components, e.g. ["x", "y"] (default all)'
@@ -1151,13 +1162,21 @@ class FitObservation(Table):
 
     @model_validator(mode="after")
     def _kind_keys(self):
-        reaction = self.kind == "reaction"
+        reaction, moment = self.kind == "reaction", self.kind == "moment"
         if reaction and (self.nodes is None or self.direction is None):
             raise fail("{at}: kind = 'reaction' needs nodes = { ... } and direction = [..]")
-        if not reaction and (self.nodes is not None or self.direction is not None):
-            raise fail("{at}: nodes and direction belong to kind = 'reaction' only")
-        if self.direction is not None and not any(abs(a) > 0 for a in self.direction):
-            raise fail("{at}.direction must not be zero")
+        if moment and self.nodes is None:
+            raise fail("{at}: kind = 'moment' needs nodes = { ... } (and axis = [..] in 3D)")
+        if not (reaction or moment) and self.nodes is not None:
+            raise fail("{at}.nodes belongs to kind = 'reaction' or 'moment' only")
+        if not reaction and self.direction is not None:
+            raise fail("{at}.direction belongs to kind = 'reaction' only")
+        if not moment and (self.axis is not None or self.origin is not None):
+            raise fail("{at}: axis and origin belong to kind = 'moment' only")
+        for k in ("direction", "axis"):
+            v = getattr(self, k)
+            if v is not None and not any(abs(a) > 0 for a in v):
+                raise fail(f"{{at}}.{k} must not be zero")
         if self.components is not None:
             if self.kind != "points":
                 raise fail("{at}.components belongs to kind = 'points' only")
@@ -1234,7 +1253,9 @@ class FitSpec(Table):
     seed: Annotated[Integer, Field(ge=0)] = Field(
         default=0, description="seed of markers and noise"
     )
-    optimizer: Literal["lbfgs", "adam"] = Field(default="lbfgs", description='"lbfgs" or "adam"')
+    optimizer: Literal["lbfgs", "adam", "lm"] = Field(
+        default="lbfgs", description='"lbfgs", "adam" or "lm" (Levenberg–Marquardt)'
+    )
     learning_rate: Positive = Field(default=0.05, description='step size of "adam"')
     max_iter: Annotated[Integer, Field(ge=0)] = Field(
         default=100, description="optimiser iterations"
