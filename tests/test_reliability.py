@@ -568,6 +568,33 @@ cli.command()
 """
 
 
+# Ctrl-C while the command imports JAX: a finder on sys.meta_path sends SIGINT to the
+# process the moment ``jax`` is first imported (wherever that happens), as a user pressing
+# Ctrl-C in the first second would; the command is started as the console script does.
+SIGNAL_DURING_IMPORT = """
+import importlib.abc, os, signal, sys
+class _CtrlC(importlib.abc.MetaPathFinder):
+    sent = False
+    def find_spec(self, name, path=None, target=None):
+        if name == "jax" and not _CtrlC.sent:
+            _CtrlC.sent = True
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+sys.meta_path.insert(0, _CtrlC())
+sys.argv[1:] = ["run", "default", "--out", {out!r}, "--no-cache"]
+from jaxelastic.cli import command
+command()
+"""
+
+
+def test_ctrl_c_while_the_command_imports_jax_is_one_line_and_130(tmp_path):
+    r = _python(SIGNAL_DURING_IMPORT.format(out=str(tmp_path / "out")))
+    assert "Traceback" not in r.stderr, r.stderr
+    assert r.returncode == 130, r.stderr
+    assert r.stderr.strip() == "jaxelastic: interrupted by SIGINT; nothing was written"
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.extended
 def test_sigterm_from_the_start_of_the_command_is_one_line_and_130():
     r = _python(SIGNAL_AT_START)
