@@ -241,6 +241,22 @@ def test_the_shift_is_a_diagonal_of_every_newton_operator():
         np.testing.assert_allclose(A(levenberg.shifted(pot, 0.0 * lam)), plain, atol=1e-12)
 
 
+def test_the_shift_starts_on_a_stall_only_with_the_dirichlet_dofs_in_place():
+    """A residual that grows while a boundary motion is applied is no stall: the smallest
+    residual and the count restart until the Dirichlet dofs are in place."""
+    from jaxelastic.solvers.newton import levenberg
+
+    best, since = jnp.asarray(jnp.inf), jnp.asarray(0, jnp.int32)
+    for rn, placed in [(0.0, False), (5.0, False), (3.0, True), (4.0, True), (2.0, True)]:
+        best, since = levenberg.progress(best, since, jnp.asarray(rn), jnp.asarray(placed))
+        if rn == 4.0:
+            assert (float(best), int(since)) == (3.0, 1)
+    assert (float(best), int(since)) == (2.0, 0)
+    for _ in range(levenberg.PATIENCE):
+        best, since = levenberg.progress(best, since, jnp.asarray(2.5), jnp.asarray(True))
+    assert int(since) == levenberg.PATIENCE  # stalled: the shift starts
+
+
 @pytest.mark.slow
 def test_corotated_recovers_or_untangles(cube):
     psi = M.corotated

@@ -160,9 +160,12 @@ def finish(
     # potential is quadratic, where one exact step is the answer)
     stalled = ((alpha == 1.0) & (rn >= STALL * state.hist[k])) | is_quadratic(pot)
     st = status_of(s, rn, dn, ref, k + 1, jnp.where(stalled, floor, 0.0))
-    tiny_step = acc & (alpha == 1.0) & (dn == 0) & (jnp.max(jnp.abs(d)) <= s.xtol * length)
+    # (a Newton step, not one the Levenberg-Marquardt shift shortened)
+    full = acc & (alpha == 1.0) & (dn == 0) & (state.lam == 0)
+    tiny_step = full & (jnp.max(jnp.abs(d)) <= s.xtol * length)
     st = jnp.where((st == RUNNING) & tiny_step & jnp.isfinite(rn), Status.SUCCESS, st)
     st = jnp.where(acc, st, Status.LINE_SEARCH_FAILED)
+    best, since = levenberg.progress(state.best, state.since, rn, dn == 0)
     shift = levenberg.adapt(
         state.lam,
         state.fails,
@@ -174,7 +177,7 @@ def finish(
         e0=state.energy,
         e1=et,
         near=near,
-        stall=levenberg.stalled(state.hist.at[k + 1].set(rn), k + 1),
+        stall=since >= levenberg.PATIENCE,
         projected=lin.stats["projected"],
     )
     if s.regularize:  # a failed line search is retried with a larger shift
@@ -199,6 +202,8 @@ def finish(
         lam=shift.lam if s.regularize else state.lam,
         reg=state.reg + (state.lam > 0).astype(jnp.int32),
         fails=shift.fails,
+        best=best,
+        since=since,
     )
     return _adapt(s, pot, new)
 

@@ -10,7 +10,8 @@ Nocedal & Wright, *Numerical Optimization*, 2nd ed., §10.3 and algorithm 4.1 fo
 ratio test):
 
 * λ = 0 (plain Newton, the fast path) until the loop misbehaves: a line search that finds
-  no acceptable step, or :data:`PATIENCE` iterations without a new smallest residual.
+  no acceptable step, or :data:`PATIENCE` iterations without a new smallest residual
+  with the Dirichlet dofs in place (:func:`progress`).
   λ then starts at the stiffness the failed step saw, ``σ = ‖g_f‖/‖Δ_f‖`` [force/length]
   (for ``H Δ = −g`` a Rayleigh-quotient-like value between H's extreme eigenvalues), and
   a failed line search does not end the solve but is retried with the larger shift, at
@@ -43,7 +44,7 @@ __all__ = [
     "shifted",
     "Shift",
     "adapt",
-    "stalled",
+    "progress",
     "PATIENCE",
     "RESCUES",
     "UP",
@@ -98,12 +99,16 @@ def shifted(pot: Potential, lam) -> Potential:
     )
 
 
-def stalled(hist, k) -> jax.Array:
-    """Whether the free residual set no new minimum in the last :data:`PATIENCE` of the
-    ``k + 1`` iterates recorded in ``hist`` (NaN beyond)."""
-    i = jnp.arange(hist.shape[0], dtype=jnp.int32)
-    r = jnp.where((i <= k) & ~jnp.isnan(hist), hist, jnp.inf)
-    return jnp.asarray(k, jnp.int32) - jnp.argmin(r).astype(jnp.int32) >= PATIENCE
+def progress(best, since, rn, placed):
+    """``(best, since)`` after an iterate with free residual ``rn``: the smallest free
+    residual with the Dirichlet dofs in place (``placed``) and the iterations since it was
+    set. While a boundary motion is still being applied the residual may grow by design:
+    both restart (``+inf``, 0). Plain Newton counts as stalled at ``since ≥``
+    :data:`PATIENCE`."""
+    better = rn < best
+    best = jnp.where(placed, jnp.where(better, rn, best), jnp.inf).astype(best.dtype)
+    since = jnp.where(placed & ~better, since + 1, 0).astype(jnp.int32)
+    return best, since
 
 
 class Shift(NamedTuple):
@@ -132,7 +137,7 @@ def adapt(
         alpha: the step length accepted (meaningless when not ``accepted``).
         e0, e1: Π before and at the accepted step; near: Π's round-off hides the decrease
             (:data:`~jaxelastic.solvers.newton.iteration.NEAR_EPS`).
-        stall: :func:`stalled` after this iteration.
+        stall: plain Newton stalled (:func:`progress`).
         projected: the step was solved on PSD-projected element Hessians (the shifted
             exact Hessian was not positive definite: λ is below its most negative
             eigenvalue, and the projection's stiffer model would crawl along a valley).

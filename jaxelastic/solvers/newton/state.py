@@ -43,7 +43,9 @@ class NewtonState(NamedTuple):
             retries; floor: the residual's round-off floor at the last iterate.
         lam: the Levenberg–Marquardt shift of the next iteration [force/length] (0: plain
             Newton; :mod:`~jaxelastic.solvers.newton.levenberg`); reg: iterations solved
-            with a shift; fails: failed line searches in a row.
+            with a shift; fails: failed line searches in a row; best, since: the smallest
+            free residual with the Dirichlet dofs in place and the iterations since
+            (:func:`~jaxelastic.solvers.newton.levenberg.progress`).
         terms: adaptation states of the potential's terms, by name
             (:mod:`~jaxelastic.solvers.newton.terms`).
     """
@@ -64,6 +66,8 @@ class NewtonState(NamedTuple):
     lam: jax.Array
     reg: jax.Array
     fails: jax.Array
+    best: jax.Array
+    since: jax.Array
     terms: Any
 
 
@@ -98,6 +102,8 @@ def init(s: Newton, pot: Potential, bc: Dirichlet, x0) -> NewtonState:
         lam=jnp.zeros((), dtype),
         reg=zero,
         fails=zero,
+        best=jnp.where(dn0 == 0, rn0, jnp.inf).astype(dtype),
+        since=zero,
         terms=ts,
     )
 
