@@ -188,7 +188,7 @@ def test_solve_refuses_bad_parameters():
         mesh=mesh, params=M.per_cell_basis(_params(C=-1.0), mesh.n_cells), psi=M.guccione
     )
     bc = L.fix(mesh, L.nodes_on_plane(mesh, 0, 0.0))
-    with pytest.raises(ValueError, match="Guccione parameter C"):
+    with pytest.raises(ValueError, match="guccione: C"):
         je.solve(pot, bc)
 
 
@@ -281,7 +281,7 @@ def test_scene_per_cell_parallel_basis_is_refused():
     ov["material"] = ov["material"] | {
         "s0": [{"where": "x < 0.5", "direction": [0, 1, 0]}, {"direction": [0, 0, 1]}]
     }
-    with pytest.raises(SceneError, match=r"s0 must not be parallel to f0 \(first cell"):
+    with pytest.raises(SceneError, match=r"s0 must not be parallel to f0.*first cell"):
         build(load_scene("fibre_block", overrides=ov))
 
 

@@ -231,6 +231,8 @@ def test_no_command_prints_help(capsys):
 
 
 def test_crosscheck_dispatch(monkeypatch):
+    import jaxelastic.verification  # the real package first: the fake replaces one module
+
     seen = {}
 
     def fake_main(argv):
@@ -240,8 +242,6 @@ def test_crosscheck_dispatch(monkeypatch):
     fake = types.ModuleType("jaxelastic.verification.derivative_check")
     fake.main = fake_main
     monkeypatch.setitem(sys.modules, "jaxelastic.verification.derivative_check", fake)
-    import jaxelastic.verification
-
     monkeypatch.setattr(jaxelastic.verification, "derivative_check", fake)
     assert cli.main(["crosscheck", "--dims", "2", "--help-me"]) == 0
     assert seen["argv"] == ["--dims", "2", "--help-me"]

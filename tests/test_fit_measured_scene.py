@@ -110,7 +110,13 @@ def test_positions_and_surface_problems(tmp_path):
     _refused(tmp_path, [POSITIONS], r"row 1: node 999 is not in \[0, 28\)")
     rest = np.broadcast_to(X[[3, 5]], (3, 2, 2))
     np.savez(tmp_path / "pos.npz", nodes=np.array([3, 5]), positions=rest)
-    _refused(tmp_path, [POSITIONS], r"'pos.npz'.*equal the rest shape")
+    _refused(tmp_path, [POSITIONS], r"'pos.npz'.*equal the rest shape at every level")
+    moved = rest + 0.1
+    moved[2, 1, 0] = np.inf  # the row check of [fit].observed files, per level
+    np.savez(tmp_path / "pos.npz", nodes=np.array([3, 5]), positions=moved)
+    _refused(tmp_path, [POSITIONS], r"'pos.npz'.*: level 2, row 1 \(node 5\) is not finite")
+    np.savez(tmp_path / "pos.npz", nodes=np.array([3, 5]), positions=moved[:2])
+    _refused(tmp_path, [POSITIONS], r"2 nodes need positions of shape \(3, 2, 2\); got \(2, 2, 2\)")
     np.savez(tmp_path / "scan.npz", points=np.zeros((3, 0, 2)))
     _refused(tmp_path, [SURFACE], r"'scan.npz'.*points must have shape")
 

@@ -412,6 +412,8 @@ BAD_FAMILIES = [
         "holzapfel_gasser_ogden",
         r"a01 \(a fibre direction\) must have length",
     ),
+    (M.guccione, dict(bt=0.0), "guccione", r"bt must be > 0"),
+    (M.guccione, dict(s0=jnp.array([-2.0, 0.0, 0.0])), "guccione", r"s0 must not be parallel"),
 ]
 
 
@@ -421,6 +423,8 @@ def test_unstable_family_constants_are_refused_by_the_python_api(cube, psi, chan
     with pytest.raises(M.MaterialParameterError, match=f"{model}: {match}"):
         M.check_material(params, 3)
     bc = loads.fix(cube, cube.points[:, 0] < 1e-9)
+    if model == "guccione":  # a shared basis is broadcast to the cells first
+        params = M.per_cell_basis(params, cube.n_cells)
     with pytest.raises(M.MaterialParameterError, match=match):
         je.solve(je.Potential(cube, params, psi=psi), bc)
 
@@ -443,6 +447,14 @@ def test_unstable_family_constants_are_refused_by_the_python_api(cube, psi, chan
                 "kappa": 400.0,
             },
             r"\[material\]\.alpha1 must be nonzero",
+        ),
+        (
+            {
+                "model": "guccione",
+                **dict(C=2.0, bf=8.0, bt=2.0, bfs=4.0, kappa=1000.0),
+                **dict(f0=[1.0, 0.0, 0.0], s0=[-3.0, 0.0, 0.0]),
+            },
+            r"\[material\]\.s0 must not be parallel to f0; its part across f0",
         ),
     ],
 )
@@ -554,6 +566,33 @@ atexit.register(bye)
 cli.main = lambda argv=None: 0
 cli.command()
 """
+
+
+# Ctrl-C while the command imports JAX: a finder on sys.meta_path sends SIGINT to the
+# process the moment ``jax`` is first imported (wherever that happens), as a user pressing
+# Ctrl-C in the first second would; the command is started as the console script does.
+SIGNAL_DURING_IMPORT = """
+import importlib.abc, os, signal, sys
+class _CtrlC(importlib.abc.MetaPathFinder):
+    sent = False
+    def find_spec(self, name, path=None, target=None):
+        if name == "jax" and not _CtrlC.sent:
+            _CtrlC.sent = True
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+sys.meta_path.insert(0, _CtrlC())
+sys.argv[1:] = ["run", "default", "--out", {out!r}, "--no-cache"]
+from jaxelastic.cli import command
+command()
+"""
+
+
+def test_ctrl_c_while_the_command_imports_jax_is_one_line_and_130(tmp_path):
+    r = _python(SIGNAL_DURING_IMPORT.format(out=str(tmp_path / "out")))
+    assert "Traceback" not in r.stderr, r.stderr
+    assert r.returncode == 130, r.stderr
+    assert r.stderr.strip() == "jaxelastic: interrupted by SIGINT; nothing was written"
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.extended

@@ -30,7 +30,6 @@ from . import rubber as rubber
 from . import spectral as spectral
 from .cardiac import ActiveTension as ActiveTension
 from .cardiac import Guccione as Guccione
-from .cardiac import check_guccione as check_guccione
 from .cardiac import guccione as guccione
 from .cardiac import guccione_params as guccione_params
 from .cardiac import per_cell_basis as per_cell_basis
@@ -64,6 +63,7 @@ from .registry import FAMILY_TYPES as FAMILY_TYPES
 from .registry import MODEL_NAMES as MODEL_NAMES
 from .registry import MaterialParameterError as MaterialParameterError
 from .registry import check_family as check_family
+from .registry import check_guccione as check_guccione
 from .registry import check_material as check_material
 from .rubber import ArrudaBoyce as ArrudaBoyce
 from .rubber import Gent as Gent

@@ -16,8 +16,8 @@ J, the form of the cardiac verification benchmarks (Land et al. 2015, *Proc. R. 
 The basis vectors are material (reference) directions, shared (``(3,)``, or ``(2,)`` padded
 with z = 0) or per cell (``(n_cells, 3)``; :func:`per_cell_basis` broadcasts shared ones).
 Inside ψ, ``f0`` is normalised and ``s0`` is Gram–Schmidt orthogonalised against ``f0`` and
-normalised, so any non-parallel pair is accepted (:func:`check_guccione` refuses a zero or
-parallel pair).
+normalised, so any non-parallel pair is accepted
+(:func:`~jaxelastic.materials.registry.check_guccione` refuses a zero or parallel pair).
 
 Active tension (:func:`with_active_tension`): ``ψ_a = T_a/2 (I₄f − 1)``, ``I₄f = f0·C f0``,
 whose second Piola stress is ``S_a = T_a f0⊗f0`` (Land et al. 2015, problem 3) and first
@@ -35,7 +35,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .rubber import embed_direction, embed_plane_strain, safe_state, volumetric
 
@@ -44,7 +43,6 @@ __all__ = [
     "guccione",
     "guccione_params",
     "guccione_basis",
-    "check_guccione",
     "per_cell_basis",
     "ActiveTension",
     "with_active_tension",
@@ -144,52 +142,6 @@ def per_cell_basis(params: Guccione, n_cells: int) -> Guccione:
         return jnp.broadcast_to(a, (n_cells, a.shape[-1])) if a.ndim == 1 else a
 
     return params._replace(f0=cells(params.f0), s0=cells(params.s0))
-
-
-PARALLEL_TOL = 1e-8
-"""s0 counts as parallel to f0 when its component orthogonal to f0 is below this fraction
-of |s0|."""
-
-
-def check_guccione(params: Guccione) -> None:
-    """Refuse concrete Guccione parameters that define no solid.
-
-    Needs C, b_f, b_t, b_fs, κ finite and > 0 (each b sets a stiffness of the linearised
-    law: zero leaves a zero modulus and a singular tangent) and f0, s0 finite, nonzero, not
-    parallel (s0 is orthogonalised against f0 inside ψ). Traced parameters are not checked.
-
-    Raises:
-        ValueError: naming the parameter and the first offending cell.
-    """
-    try:
-        vals = {k: np.asarray(getattr(params, k), dtype=np.float64) for k in Guccione._fields}
-    except Exception:  # noqa: BLE001 — traced (inside jit/grad): not checked here
-        return
-
-    def at(bad) -> str:
-        bad = np.atleast_1d(bad)
-        return "" if bad.size == 1 else f" (first cell {int(np.flatnonzero(bad)[0])})"
-
-    for k in ("C", "bf", "bt", "bfs", "kappa"):
-        v = vals[k]
-        if (bad := ~(np.isfinite(v) & (v > 0))).any():
-            raise ValueError(
-                f"Guccione parameter {k} must be finite and > 0{at(bad)}, got "
-                f"{np.atleast_1d(v)[np.atleast_1d(bad)][0]!r}"
-            )
-    f0, s0 = (np.atleast_2d(vals[k]) for k in ("f0", "s0"))
-    for k, a in (("f0", f0), ("s0", s0)):
-        if a.shape[-1] not in (2, 3):
-            raise ValueError(f"Guccione {k} must have 2 or 3 components, got shape {a.shape}")
-        if (bad := ~(np.isfinite(a).all(axis=1) & (np.abs(a) > 0).any(axis=1))).any():
-            raise ValueError(f"Guccione {k} must be a finite nonzero direction{at(bad)}")
-    pad = [np.pad(a, ((0, 0), (0, 3 - a.shape[-1]))) for a in (f0, s0)]
-    f, s = np.broadcast_arrays(*pad)
-    fn = f / np.linalg.norm(f, axis=1, keepdims=True)
-    perp = s - np.sum(s * fn, axis=1, keepdims=True) * fn
-    bad = np.linalg.norm(perp, axis=1) <= PARALLEL_TOL * np.linalg.norm(s, axis=1)
-    if bad.any():
-        raise ValueError(f"Guccione s0 must not be parallel to f0{at(bad)}")
 
 
 class ActiveTension(NamedTuple):

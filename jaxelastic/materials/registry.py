@@ -13,7 +13,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .cardiac import ActiveTension, Guccione, check_guccione, guccione, guccione_params
+from .cardiac import ActiveTension, Guccione, guccione, guccione_params
 from .fibres import HolzapfelGasserOgden, holzapfel_gasser_ogden, holzapfel_gasser_ogden_params
 from .isotropic import (
     arap,
@@ -57,6 +57,8 @@ __all__ = [
     "check_material",
     "GENT_JM_MIN",
     "FIBRE_LENGTH_MIN",
+    "PARALLEL_TOL",
+    "check_guccione",
     "DIRECTION_KEYS",
 ]
 
@@ -120,7 +122,7 @@ FAMILY_KEYS = {name: tuple(t._fields) for name, t in FAMILY_TYPES.items()}
 ``("c10", "c01", "kappa")`` for ``mooney_rivlin``), all required in a scene's ``[material]``."""
 
 FAMILY_POSITIVE_KEYS = frozenset({"c10", "kappa", "Jm", "lambda_m", "k2", "bulk", "mu"}) | {
-    "C",  # Guccione (jaxelastic.materials.cardiac.check_guccione)
+    "C",  # Guccione
     "bf",
     "bt",
     "bfs",
@@ -135,6 +137,10 @@ J_m = 0.01 already locks at about 6 % uniaxial stretch (rubbers: J_m ≈ 30–10
 FIBRE_LENGTH_MIN = 1e-8
 """The shortest HGO fibre direction accepted (ψ normalises it; a direction of length ~0
 has no direction)."""
+
+PARALLEL_TOL = 1e-8
+"""Guccione's s0 counts as parallel to f0 when its component orthogonal to f0 is below this
+fraction of |s0| (ψ orthogonalises s0 against f0: a parallel pair has no sheet)."""
 
 
 class MaterialParameterError(ValueError):
@@ -163,7 +169,7 @@ def check_family(model: str, values: Mapping) -> None:
     one validation of :data:`FAMILIES`' parameters, used by :func:`check_material` (the
     Python API: ``je.solve``) and by the scene schema (``[material]``).
 
-    Long because: the conditions of the six families side by side, each a few lines, read
+    Long because: the conditions of the seven families side by side, each a few lines, read
     and review best as one table.
 
     Checks, each naming the parameter: every value finite; a positive initial shear and
@@ -171,7 +177,10 @@ def check_family(model: str, values: Mapping) -> None:
     c10 + c01 > 0; Yeoh c10 > 0; Ogden αₚ ≠ 0 and μₚαₚ ≥ 0 for every term (Ogden 1972's
     stability condition); Gent μ > 0 and J_m ≥ :data:`GENT_JM_MIN`; Arruda–Boyce μ > 0 and
     λ_m > 1 (λ_m = √N, the locking chain stretch: λ_m ≤ 1 locks at rest); HGO μ > 0,
-    k1 ≥ 0, k2 > 0, κ ∈ [0, 1/3] and fibre directions of length ≥ :data:`FIBRE_LENGTH_MIN`.
+    k1 ≥ 0, k2 > 0, κ ∈ [0, 1/3] and fibre directions of length ≥ :data:`FIBRE_LENGTH_MIN`;
+    Guccione C, b_f, b_t, b_fs > 0 (each b sets a modulus of the linearised law: zero
+    leaves a singular tangent) and f0, s0 nonzero directions of 2 or 3 components, s0 not
+    parallel to f0 (:data:`PARALLEL_TOL`).
 
     Args:
         model: a name of :data:`FAMILIES`; values: parameter key → number or array
@@ -264,6 +273,56 @@ def check_family(model: str, values: Mapping) -> None:
                     f"(a fibre direction) must have length >= {FIBRE_LENGTH_MIN:g}",
                     length,
                 )
+    elif model == "guccione":
+        if has("C"):
+            need("C", arr["C"] > 0, "(the stiffness scale) must be > 0")
+        for k in ("bf", "bt", "bfs"):
+            if has(k):
+                need(k, arr[k] > 0, "must be > 0 (each b sets a modulus: zero is singular)")
+        _check_basis(model, arr, need)
+
+
+def _check_basis(model: str, arr: dict, need) -> None:
+    """Guccione's f0 and s0 (shared ``(d,)`` or per cell ``(n_cells, d)``, d = 2 or 3):
+    nonzero, and s0 not parallel to f0."""
+    shared = all(arr[k].ndim == 1 for k in ("f0", "s0") if k in arr)
+
+    def check(key, ok, what, value):  # a shared vector reports its value, a field its cell
+        need(key, ok[0] if shared else ok, what, value[0] if shared else value)
+
+    rows = {}
+    for k in ("f0", "s0"):
+        if k not in arr:
+            continue
+        a = np.atleast_2d(arr[k])
+        if a.ndim != 2 or a.shape[-1] not in (2, 3):
+            raise MaterialParameterError(
+                model, k, f"must have 2 or 3 components, got shape {arr[k].shape}"
+            )
+        length = np.linalg.norm(a, axis=1)
+        check(k, length > 0, "(a direction) must be nonzero; its length", length)
+        rows[k] = np.pad(a, ((0, 0), (0, 3 - a.shape[-1])))
+    if len(rows) == 2:
+        f, s = np.broadcast_arrays(rows["f0"], rows["s0"])
+        fn = f / np.linalg.norm(f, axis=1, keepdims=True)
+        perp = np.linalg.norm(s - np.sum(s * fn, axis=1, keepdims=True) * fn, axis=1)
+        ok = perp > PARALLEL_TOL * np.linalg.norm(s, axis=1)
+        check("s0", ok, "must not be parallel to f0; its part across f0", perp)
+
+
+def check_guccione(params: Guccione) -> None:
+    """Refuse concrete Guccione parameters that define no solid: :func:`check_family`'s
+    ``"guccione"`` conditions on a :class:`~jaxelastic.materials.cardiac.Guccione` (shared
+    or per-cell). Traced parameters are not checked.
+
+    Raises:
+        MaterialParameterError: naming the parameter and the first offending cell.
+    """
+    try:
+        values = {k: np.asarray(getattr(params, k)) for k in Guccione._fields}
+    except Exception:  # noqa: BLE001 — traced leaves (inside jit/grad): not checked
+        return
+    check_family("guccione", values)
 
 
 def check_material(params, dim: int) -> None:
@@ -279,9 +338,6 @@ def check_material(params, dim: int) -> None:
         params = params.passive
     if isinstance(params, Lame):
         check_lame(params, dim)
-        return
-    if isinstance(params, Guccione):
-        check_guccione(params)
         return
     for name, t in FAMILY_TYPES.items():
         if isinstance(params, t):

@@ -38,6 +38,7 @@ from .outputs import (
     save_npz,
     save_png,
 )
+from .positions import check_positions
 from .problem import Built, build, newton_of
 from .run import static_solve
 from .schema import FitCase, FitSpec
@@ -116,18 +117,7 @@ def read_observed(scene: Scene, key: str, path: str, n_nodes: int, dim: int, res
             )
         nodes = np.arange(n_nodes)
     nodes = check_nodes(scene, where, nodes, n_nodes)
-    if pos.shape != (nodes.size, dim):
-        raise scene.error(
-            f"{where}: {nodes.size} nodes need positions of shape ({nodes.size}, {dim}); "
-            f"got {pos.shape}"
-        )
-    bad = np.flatnonzero(~np.isfinite(pos).all(axis=1))
-    if bad.size:
-        raise scene.error(f"{where}: row {int(bad[0])} (node {int(nodes[bad[0]])}) is not finite")
-    if rest is not None:
-        X = np.asarray(rest)[nodes]
-        if np.allclose(pos, X, rtol=0.0, atol=1e-12 * max(float(np.ptp(X)), 1e-300)):
-            raise scene.error(f"{where}: the positions equal the rest shape (nothing moved)")
+    pos = check_positions(scene, where, pos, nodes, dim, rest)
     return pos, nodes
 
 

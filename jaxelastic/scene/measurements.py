@@ -24,6 +24,7 @@ import numpy as np
 
 from .. import fitting
 from .load import Scene
+from .positions import check_positions
 from .problem import Built, select_nodes
 from .schema import FitCase, FitObservation
 
@@ -161,11 +162,8 @@ def _points(scene, key, where, path, spec: FitObservation, factors, bt: Built):
 def _positions(scene, key, where, path, spec: FitObservation, factors, bt: Built):
     a = _npz(scene, where, path, ("nodes", "positions"))
     nodes = check_nodes(scene, where, a["nodes"], bt.mesh.n_nodes)
-    _shape(scene, where, "positions", a["positions"], (len(factors), nodes.size, bt.mesh.dim))
-    pos = _finite(scene, where, "positions", a["positions"])
-    X = np.asarray(bt.mesh.points)[nodes]
-    if np.allclose(pos, X[None], rtol=0.0, atol=1e-12 * max(float(np.ptp(X)), 1e-300)):
-        raise scene.error(f"{where}: the positions equal the rest shape at every level")
+    dim, rest = bt.mesh.dim, bt.mesh.points
+    pos = check_positions(scene, where, a["positions"], nodes, dim, rest, levels=len(factors))
     dt = bt.mesh.points.dtype
     return fitting.Positions(jnp.asarray(nodes), jnp.asarray(pos, dt), spec.sigma)
 

@@ -10,7 +10,10 @@ Each iteration:
    by the linear solver (:mod:`~jaxelastic.solvers.linear`) on the exact Hessian (element
    Hessians or HVP), or on PSD-projected element Hessians (``hessian="projected"``); a
    solve that finds the Hessian indefinite is retried once on projected element Hessians
-   (:mod:`~jaxelastic.solvers.newton.retry`).
+   (:mod:`~jaxelastic.solvers.newton.retry`). Where plain Newton misbehaves (a failed
+   line search, or no new smallest residual for several iterations) the Hessian is
+   shifted by λI, λ adapted by the ratio of actual to predicted decrease
+   (:mod:`~jaxelastic.solvers.newton.levenberg`, ``Newton(regularize=True)``).
 3. Backtracking line search treating non-finite Π as +∞ (an inverting step of a model that
    is undefined at J ≤ 0 is cut back until no element inverts), starting from the bound
    of the potential's terms (contact: the CCD bound): Armijo on Π far from the solution,
@@ -33,7 +36,8 @@ Each iteration:
    (:func:`solved_potential`).
 
 ``settings`` (:class:`Newton`) → ``terms`` → ``iteration`` (the pieces) → ``state``
-(:class:`NewtonState`, :func:`init`, :func:`terminate`) → ``retry`` → ``driver``
+(:class:`NewtonState`, :func:`init`, :func:`terminate`) → ``retry``, ``levenberg`` →
+``driver``
 (:func:`step`, :func:`minimize`: the one loop).
 """
 

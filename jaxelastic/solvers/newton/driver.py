@@ -41,7 +41,7 @@ from ..host.heap import release_free_memory
 from ..linear import LinearState, NewtonSystem, assemble_upper, newton_system
 from ..linear.system import operator_is_assembled
 from ..results import RUNNING, Solution, Status
-from . import terms
+from . import levenberg, terms
 from .iteration import (
     STALL,
     descent,
@@ -92,10 +92,17 @@ def prepare(s: Newton, pot: Potential, bc: Dirichlet, state: NewtonState, Ke=Non
     its terms at ``state.terms``; ``Ke``/``pair_h``: already computed at ``state.x``)."""
     x = state.x
     need = s.linear.needs_element_hessians
-    system = newton_system(pot, x, ~bc.mask, hessian=s.hessian, need_Ke=need, Ke=Ke, pair_h=pair_h)
+    sp = _shifted(s, pot, state.lam)
+    system = newton_system(sp, x, ~bc.mask, hessian=s.hessian, need_Ke=need, Ke=Ke, pair_h=pair_h)
     dD = jnp.where(bc.mask, bc.values - x, 0.0)
     rhs, tol, bn = newton_rhs(s, system, state.g, dD, state.ref)
     return Prepared(system, dD, rhs, tol, bn)
+
+
+def _shifted(s: Newton, pot: Potential, lam) -> Potential:
+    """The potential of the Newton system: its Hessian shifted by ``lam``·I
+    (:func:`~.levenberg.shifted`) with the safeguard on."""
+    return levenberg.shifted(pot, lam) if s.regularize else pot
 
 
 def _retry_enabled(s: Newton, system: NewtonSystem) -> bool:
@@ -153,9 +160,29 @@ def finish(
     # potential is quadratic, where one exact step is the answer)
     stalled = ((alpha == 1.0) & (rn >= STALL * state.hist[k])) | is_quadratic(pot)
     st = status_of(s, rn, dn, ref, k + 1, jnp.where(stalled, floor, 0.0))
-    tiny_step = acc & (alpha == 1.0) & (dn == 0) & (jnp.max(jnp.abs(d)) <= s.xtol * length)
+    # (a Newton step, not one the Levenberg-Marquardt shift shortened)
+    full = acc & (alpha == 1.0) & (dn == 0) & (state.lam == 0)
+    tiny_step = full & (jnp.max(jnp.abs(d)) <= s.xtol * length)
     st = jnp.where((st == RUNNING) & tiny_step & jnp.isfinite(rn), Status.SUCCESS, st)
     st = jnp.where(acc, st, Status.LINE_SEARCH_FAILED)
+    best, since = levenberg.progress(state.best, state.since, rn, dn == 0)
+    shift = levenberg.adapt(
+        state.lam,
+        state.fails,
+        state.reg > 0,
+        g_free=g * fm,
+        d_free=d * fm,
+        alpha=alpha,
+        accepted=acc,
+        e0=state.energy,
+        e1=et,
+        near=near,
+        stall=since >= levenberg.PATIENCE,
+        projected=lin.stats["projected"],
+    )
+    if s.regularize:  # a failed line search is retried with a larger shift
+        st = jnp.where(shift.rescue & (st == Status.LINE_SEARCH_FAILED), RUNNING, st)
+        st = jnp.where(shift.rescue & (k + 1 >= s.max_steps), Status.MAX_STEPS, st)
     its = lin.stats["iterations"].astype(jnp.int32)
     neg = lin.status == Status.NEGATIVE_CURVATURE
     new = state._replace(
@@ -172,6 +199,11 @@ def finish(
         neg=state.neg + neg.astype(jnp.int32),
         proj=state.proj + lin.stats["projected"].astype(jnp.int32),
         floor=floor,
+        lam=shift.lam if s.regularize else state.lam,
+        reg=state.reg + (state.lam > 0).astype(jnp.int32),
+        fails=shift.fails,
+        best=best,
+        since=since,
     )
     return _adapt(s, pot, new)
 
@@ -264,7 +296,8 @@ def _loop_prepare(s: Newton, pot: Potential, bc: Dirichlet, state: NewtonState):
 def _system(s: Newton, pot, bc, state: NewtonState, Ke, ph) -> NewtonSystem:
     """The Newton operator from the element Hessians already computed at ``state.x``."""
     need = s.linear.needs_element_hessians
-    return newton_system(pot, state.x, ~bc.mask, hessian=s.hessian, need_Ke=need, Ke=Ke, pair_h=ph)
+    sp = _shifted(s, pot, state.lam)
+    return newton_system(sp, state.x, ~bc.mask, hessian=s.hessian, need_Ke=need, Ke=Ke, pair_h=ph)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -285,22 +318,25 @@ _solution_jit = jax.jit(solution, static_argnums=2)
 
 
 @functools.partial(jax.jit, static_argnames="nnz_upper")
-def _upper(pot: Potential, Ke, element_map, nnz_upper: int):
+def _upper(pot: Potential, Ke, element_map, lam, nnz_upper: int):
     """The assembled upper data of Ke (the map an argument: no callback, so the
-    persistent cache keeps it) and the mass diagonal ``(n_nodes,)`` (zeros for none)."""
+    persistent cache keeps it) and the mass diagonal ``(n_nodes,)`` (zeros for none)
+    plus the Levenberg–Marquardt shift ``lam``."""
     md = pot_mod.mass_diagonal(pot)
     if md is None:
         md = jnp.zeros(pot.mesh.points.shape[:1], Ke.dtype)
-    return assemble_upper(Ke, element_map, nnz_upper), md
+    return assemble_upper(Ke, element_map, nnz_upper), md + lam
 
 
-def _host_linear_step(s: Newton, lstate, pot: Potential, bc: Dirichlet, Ke, rhs, tol) -> Solution:
+def _host_linear_step(
+    s: Newton, lstate, pot: Potential, bc: Dirichlet, Ke, rhs, tol, lam
+) -> Solution:
     """The linear solve of a Newton step outside jit on the assembled operator: data
     assembled on the device, the host solve a Python call, the projected retry on the
-    assembled data (:func:`~.retry.projected_upper`)."""
+    assembled data (:func:`~.retry.projected_upper`); ``lam``: the shift."""
     host = lstate.host
     nnz = host.nnz_upper
-    data, md = _upper(pot, Ke, host.element_map, nnz)
+    data, md = _upper(pot, Ke, host.element_map, lam, nnz)
     free = np.asarray(~bc.mask)
     box = {"data": data}
 
@@ -332,7 +368,7 @@ def _python_loop(s: Newton, lstate, pot: Potential, bc: Dirichlet, x0) -> Soluti
         p = terms.with_states(pot, state.terms)
         Ke, rhs, tol, bn, ph = _loop_prepare(s, pot, bc, state)
         if on_host:
-            lin = _host_linear_step(s, lstate, p, bc, Ke, rhs, tol)
+            lin = _host_linear_step(s, lstate, p, bc, Ke, rhs, tol, state.lam)
         else:
             lin = _loop_linear(s, lstate, pot, bc, state, Ke, rhs, tol, ph)
         # refresh the terms for the coming step (self-contact: a new broad phase)

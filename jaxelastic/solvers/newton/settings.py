@@ -30,8 +30,9 @@ def _real(v, name: str) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class Newton:
-    """Newton's method with an inversion-aware backtracking line search (frozen, hashable:
-    a static argument under jit; changing a field recompiles).
+    """Newton's method with an inversion-aware backtracking line search and a
+    Levenberg–Marquardt safeguard (frozen, hashable: a static argument under jit; changing
+    a field recompiles).
 
     Attributes:
         rtol: relative tolerance on the free-dof force residual.
@@ -62,6 +63,14 @@ class Newton:
             computed from the original potential would use the old one (use
             :func:`~jaxelastic.solvers.newton.solved_potential`), and in dynamics every
             step adapts afresh.
+        regularize: the Levenberg–Marquardt safeguard
+            (:mod:`~jaxelastic.solvers.newton.levenberg`): where plain Newton misbehaves (a
+            line search finds no acceptable step, or the residual sets no new minimum for
+            several iterations: a flat, curved valley such as a nearly free rotation) the
+            Hessian is shifted by λI, λ adapted by the ratio of actual to predicted
+            decrease of Π, and back to 0 (plain Newton) once steps are predicted well.
+            Solves where Newton behaves never shift. ``stats["regularized"]``: the
+            iterations solved with a shift.
     """
 
     rtol: float = 1e-8
@@ -74,6 +83,7 @@ class Newton:
     armijo: float = 1e-4
     require_positive_J: bool = False
     kappa_max_factor: float = 1.0
+    regularize: bool = True
 
     def __post_init__(self):
         if self.hessian not in HESSIANS:
@@ -82,10 +92,9 @@ class Newton:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
-        if not isinstance(self.require_positive_J, (bool, np.bool_)):
-            raise TypeError(
-                f"require_positive_J must be True or False, got {self.require_positive_J!r}"
-            )
+        for name in ("require_positive_J", "regularize"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise TypeError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if not 0.0 <= _real(self.armijo, "armijo") < 1.0:
             raise ValueError(
                 f"armijo (the line search's sufficient-decrease constant) must be in [0, 1), "

@@ -41,6 +41,11 @@ class NewtonState(NamedTuple):
             iterations; alpha_hist: ``(max_steps,)`` accepted step lengths (NaN: none).
         cuts: line-search halvings; neg: negative-curvature linear solves; proj: projected
             retries; floor: the residual's round-off floor at the last iterate.
+        lam: the Levenberg–Marquardt shift of the next iteration [force/length] (0: plain
+            Newton; :mod:`~jaxelastic.solvers.newton.levenberg`); reg: iterations solved
+            with a shift; fails: failed line searches in a row; best, since: the smallest
+            free residual with the Dirichlet dofs in place and the iterations since
+            (:func:`~jaxelastic.solvers.newton.levenberg.progress`).
         terms: adaptation states of the potential's terms, by name
             (:mod:`~jaxelastic.solvers.newton.terms`).
     """
@@ -58,6 +63,11 @@ class NewtonState(NamedTuple):
     neg: jax.Array
     proj: jax.Array
     floor: jax.Array
+    lam: jax.Array
+    reg: jax.Array
+    fails: jax.Array
+    best: jax.Array
+    since: jax.Array
     terms: Any
 
 
@@ -89,6 +99,11 @@ def init(s: Newton, pot: Potential, bc: Dirichlet, x0) -> NewtonState:
         neg=zero,
         proj=zero,
         floor=jnp.zeros((), dtype),
+        lam=jnp.zeros((), dtype),
+        reg=zero,
+        fails=zero,
+        best=jnp.where(dn0 == 0, rn0, jnp.inf).astype(dtype),
+        since=zero,
         terms=ts,
     )
 
@@ -147,6 +162,7 @@ def solution(pot: Potential, state: NewtonState, s: Newton | None = None) -> Sol
         line_search_cutbacks=state.cuts,
         negative_curvature=state.neg,
         projected=state.proj,
+        regularized=state.reg,
         residual_floor=state.floor,
         residual_reference=state.ref,
         achieved_rtol=res / jnp.maximum(state.ref, jnp.finfo(state.ref.dtype).tiny),
