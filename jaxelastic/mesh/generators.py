@@ -392,6 +392,21 @@ def truncated_ellipsoid(
     endo, epi = _check_radii(endo, epi, float(base))
     base = float(base)
     ensure_persistent_cache()  # the library's default cache, before the first compile
+    tets, svt = _ellipsoid_grid(n_u, n_v, n_t)
+    s3, v3, t3 = svt.T
+    X = _ellipsoid_map(s3, v3, t3, endo, epi, base)
+    m = from_arrays(X, _oriented(X, tets), "tet4", **kw)
+    if order == 1:  # P1, or the composite element (straight edges)
+        if formulation == "standard":
+            return m
+        return to_quadratic(m, composite=True, formulation=formulation)
+    return _curved_ellipsoid(m, svt, endo, epi, base, formulation)
+
+
+def _ellipsoid_grid(n_u: int, n_v: int, n_t: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ventricle's topology: ``(tets, svt)`` — the tets ``(c, 4)`` and each node's
+    parameters ``svt`` ``(n, 3)`` (s, v, t of :func:`_ellipsoid_map`), numbered as
+    :func:`truncated_ellipsoid` documents."""
     # the surface grid: the apex, then rings i = 1 … n_u of n_v nodes
     ring_s = np.repeat(np.arange(1, n_u + 1) / n_u, n_v)
     ring_v = np.tile(-np.pi + 2.0 * np.pi * np.arange(n_v) / n_v, n_u)
@@ -422,12 +437,14 @@ def truncated_ellipsoid(
     )
     t3 = np.repeat(np.arange(n_t + 1) / n_t, n2)
     s3, v3 = np.tile(s2, n_t + 1), np.tile(v2, n_t + 1)
-    X = _ellipsoid_map(s3, v3, t3, endo, epi, base)
-    m = from_arrays(X, _oriented(X, tets), "tet4", **kw)
-    if order == 1:  # P1, or the composite element (straight edges)
-        if formulation == "standard":
-            return m
-        return to_quadratic(m, composite=True, formulation=formulation)
+    return tets, np.stack([s3, v3, t3], axis=1)
+
+
+def _curved_ellipsoid(m: Mesh, svt: np.ndarray, endo, epi, base: float, formulation: str):
+    """P2 lift of the P1 ventricle ``m`` whose nodes have the parameters ``svt`` ``(n, 3)``
+    (s, v, t of :func:`_ellipsoid_map`): each mid-edge node at the parametric midpoint of
+    its edge (on the ellipsoids and the base plane: curved, isoparametric facets)."""
+    s3, v3, t3 = svt.T
     q = to_quadratic(m, formulation=formulation)
     cells = np.asarray(q.cells)
     ends = cells[:, :4][:, edge_table(m.element_type)].reshape(-1, 2)  # (c·6, 2)
