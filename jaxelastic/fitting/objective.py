@@ -136,15 +136,20 @@ process loads it instead of compiling it (a host solver's ``jax.pure_callback`` 
 every process recompile the whole objective: 28 s of the 42 s of the small Mooney–Rivlin
 fit of ``scripts/bench_first_result.py``, loaded machine)."""
 
-FIT_DIRECT_MAX_DOFS = {2: 200_000, 3: 40_000}
+FIT_DIRECT_MAX_DOFS = {2: 200_000, 3: 20_000}
 """``linear="auto"`` in a fit: sparse Cholesky above :data:`FIT_DEVICE_MAX_DOFS` up to this
-many dofs (per dimension), where a single solve would take AMG-CG above 10k dofs in 3D
+many dofs (per dimension), where a single solve takes AMG-CG above 10k dofs in 3D
 (:data:`~jaxelastic.solvers.linear.auto.AUTO_DIRECT_MAX_DOFS`). A fit solves the same
-specimen many times to ``rtol = 1e-11`` and preconditions every adjoint solve with the
-last factorisation: on the 10k-dof plate with a hole (``scripts/bench_identification.py``,
-4 levels, loaded machine) one loss and gradient took 3 Newton steps per level and 2.0 s
-with it against 5 steps per level and 9.8–13 s with AMG. 40k is a conservative
-extrapolation of that 5× lead with the direct/AMG ratio growing like n^0.7."""
+specimen many times to ``rtol = 1e-11``, where the exact Newton steps of a factorisation
+converge in fewer steps than AMG-CG's inexact ones, and preconditions every adjoint solve
+with the last factorisation. On the 10k-dof plate with a hole
+(``scripts/bench_identification.py``, loaded machine, noisy wall times): a loss and
+gradient at a new point took 3 Newton steps per level with it against 5 with AMG-CG, and
+2.0 s against 9.8–13 s for 4 levels (minutes apart); for 20 levels, beside the code with
+AMG-CG and a second solve per level, 12.7 s against 10.6 s per evaluation but 189 s
+against 279 s for the whole fit with its uncertainty (docs/guide/compilation.md). 20k in
+3D is a cautious bound, twice the single-solve one, until the two are compared on an
+idle machine."""
 
 
 def fit_linear(solver: Newton, mesh) -> Newton:
