@@ -166,6 +166,58 @@ def test_solve_and_gradient_compile_each_piece_once():
     assert in_grad["jit(_exact_upper)"] == 1 and in_grad["jit(_host_pullback)"] == 1, in_grad
 
 
+def test_fit_objective_compiles_once_and_holds_no_host_callback():
+    """A load-path fit of a small specimen: the compiled loss and gradient holds no host
+    callback (``linear="auto"`` is device CG there, jaxelastic.fitting.fit_linear), so JAX's
+    persistent cache keeps it; a second evaluation at new parameter values, from the first
+    one's solutions, compiles nothing; and its gradient matches central differences."""
+    import jax.numpy as jnp
+    import numpy as np
+    from jax import monitoring
+
+    import jaxelastic as je
+    from jaxelastic import fitting as F
+    from jaxelastic import loads
+    from jaxelastic.fitting import objective as O
+
+    mesh = je.rectangle(2, 1, size=(2.0, 1.0))
+    left, right = loads.nodes_on_plane(mesh, 0, 0.0), loads.nodes_on_plane(mesh, 0, 2.0)
+    bc = loads.combine(loads.fix(mesh, left), loads.fix(mesh, right, displacement=[0.2, 0.0]))
+    pot = je.Potential(mesh, je.Lame.from_E_nu(100.0, 0.3, dim=2), psi=je.materials.neo_hookean)
+    e = jnp.asarray([1.0, 0.0])
+    obs = (F.Reaction(jnp.asarray(right), e, jnp.asarray([3.0, 6.0]), 1.0),)
+    case = F.LoadPathCase(pot, bc, [0.5, 1.0], obs)
+    obj = F.make_objective([case], F.Material(80.0, 0.25))
+    assert obj.solvers[0].linear.kind == "cg"
+    warms = obj.initial_warms()
+    args = (obj.z0, obj.pz, obj.cases, warms, obj.solvers, obj.adjoint)
+    assert "callback" not in O._value_and_grad.lower(*args).as_text()
+    events: list[str] = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            events.append(str(kw.get("fun_name", "")))
+
+    z1 = obj.z0 + jnp.asarray([0.05, -0.02])
+    monitoring.register_event_duration_secs_listener(listen)
+    try:
+        (f0, auxs), _ = obj.value_and_grad(obj.z0, warms)
+        n_first = len(events)
+        warm1 = tuple(a.warm for a in auxs)
+        (f1, _), g1 = obj.value_and_grad(z1, warm1)
+        again = events[n_first:]
+    finally:
+        monitoring.unregister_event_duration_listener(listen)
+    assert not again, again
+    assert float(f1) != float(f0)
+    h = 1e-5
+    for j in range(2):
+        dz = jnp.zeros(2).at[j].set(h)
+        fp = float(obj.value_and_grad(z1 + dz, warm1, check=False)[0][0])
+        fm = float(obj.value_and_grad(z1 - dz, warm1, check=False)[0][0])
+        np.testing.assert_allclose(float(g1[j]), (fp - fm) / (2 * h), rtol=1e-5)
+
+
 _DEFAULT_CACHE_CHILD = """
 import os, sys, jax
 jax.config.update("jax_enable_x64", True)

@@ -40,6 +40,8 @@ from ..loads import Dirichlet
 from ..mechanics import forces
 from ..mechanics.potential import Potential
 from ..solvers import ImplicitAdjoint, Newton, PreparedSolver, Status, prepare_solver, solve
+from ..solvers.adjoint import differentiable_solution
+from ..solvers.results import Solution
 from .measurements import Observation, SolvedState
 from .observations import observation_loss
 
@@ -280,11 +282,11 @@ class LoadPathCase(Case):
     first evaluation). A level whose solve fails is retried from the previous level's
     solution in sub-steps (the increment halved up to ``max_cutbacks`` times); a level
     still failing makes the case fail (``CaseAux.ok`` False, with its status and level),
-    never skipped. The solution of every level is then one differentiable
-    :func:`jaxelastic.solve` (the sub-steps only find its start), so the gradient goes
-    through every level by the implicit adjoint, one adjoint solve per level
-    (``jax.lax.scan`` over the levels: compiled once whatever their number). Cavity
-    pressures (``pot.pressure``) scale like the forces, ``s_k·p``.
+    never skipped. The converged solution of every level (one Newton solve from the warm
+    start where that converges) is differentiated by the implicit adjoint
+    (:func:`~jaxelastic.solvers.adjoint.differentiable_solution`: no second solve), one
+    adjoint solve per level (``jax.lax.scan`` over the levels: compiled once whatever
+    their number). Cavity pressures (``pot.pressure``) scale like the forces, ``s_k·p``.
 
     The loss is the χ² misfit ``Σ_obs Σ_levels Σ ((pred − data)/σ)²`` of the
     observations (:mod:`jaxelastic.fitting.measurements`).
@@ -366,6 +368,7 @@ class LoadPathCase(Case):
         (leading axis: level); pure, jit-able, differentiable."""
         xs_warm, valid = warm
         X = self.pot.mesh.points
+        solver = prepare_solver(solver, self.pot.mesh, self.bc)
         need_r = any(o.needs_reactions for o in self.observations)
         datas = tuple(o.data for o in self.observations)
 
@@ -374,8 +377,11 @@ class LoadPathCase(Case):
             s, xw, data_k = inp
             pot, bc = self.at(s, params)
             x0 = jnp.where(valid, xw, x_prev)
-            x_start, trials = _reach(self, params, solver, x0, x_prev, s_prev, s)
-            sol = solve(pot, bc, x0=x_start, solver=solver, adjoint=adjoint, throw=False)
+            x_k, st_k, trials = _reach(self, params, solver, x0, x_prev, s_prev, s)
+            found = Solution(x=x_k, status=st_k, stats={})  # (no adaptive terms: no contact)
+            sol = differentiable_solution(
+                solver.newton, solver.linear_state, adjoint, pot, bc, found
+            )
             R = None
             if need_r:
                 R = -forces(pot.psi, sol.x, pot.mesh, pot.params)
@@ -384,21 +390,20 @@ class LoadPathCase(Case):
             obs = self.observations
             preds = tuple(o.predict(state, d) for o, d in zip(obs, data_k, strict=True))
             st = jnp.asarray(sol.status, jnp.int32)
-            its = [jnp.asarray(sol.stats[k], jnp.int32) for k in ("steps", "linear_iterations")]
-            out = (preds, sol.x, st, *its, trials)
+            out = (preds, sol.x, st, trials)
             return (sol.x, s), out
 
         s0 = jnp.zeros((), X.dtype)
         factors = jnp.asarray(self.factors, X.dtype)
         _, out = jax.lax.scan(level, (X, s0), (factors, xs_warm, datas))
-        preds, xs, st, steps, lin, trials = out
+        preds, xs, st, trials = out
         failed = st != Status.SUCCESS
         first = jnp.argmax(failed)
         aux = CaseAux(
             warm=(xs, jnp.asarray(True)),
             ok=~jnp.any(failed),
-            newton_steps=jnp.sum(steps) + jnp.sum(trials[:, 1]),
-            linear_iterations=jnp.sum(lin) + jnp.sum(trials[:, 2]),
+            newton_steps=jnp.sum(trials[:, 1]),
+            linear_iterations=jnp.sum(trials[:, 2]),
             status=jnp.where(jnp.any(failed), st[first], 0),
             level=jnp.where(jnp.any(failed), first, -1).astype(jnp.int32),
         )
@@ -427,11 +432,12 @@ jax.tree_util.register_dataclass(
 
 
 def _reach(case: LoadPathCase, params, solver, x0, x_prev, s_prev, s):
-    """A converged start for level ``s`` (no derivatives): one solve from ``x0``; if it
-    fails, sub-steps from the previous level's ``(x_prev, s_prev)`` with the increment
-    halved on every failure, at most ``case.max_cutbacks`` times (either direction).
-    Returns ``(x, counts)``: the last converged positions and ``(trials, Newton steps,
-    linear iterations)``."""
+    """The solution of level ``s`` (no derivatives): one solve from ``x0``; if it fails,
+    sub-steps from the previous level's ``(x_prev, s_prev)`` with the increment halved on
+    every failure, at most ``case.max_cutbacks`` times (either direction). Returns
+    ``(x, status, counts)``: the last converged positions (level ``s``'s solution where
+    ``status`` is SUCCESS; else the last failed trial's status), and ``(trials, Newton
+    steps, linear iterations)``."""
     stop = jax.lax.stop_gradient
     params, x0, x_prev, s_prev, s = stop((params, x0, x_prev, s_prev, s))
     max_cut = int(case.max_cutbacks)
@@ -439,16 +445,18 @@ def _reach(case: LoadPathCase, params, solver, x0, x_prev, s_prev, s):
     one = jnp.ones((), s.dtype)
 
     def cond(c):
-        _, t_done, _, cuts, _ = c
+        _, t_done, _, cuts, _, _ = c
         return (t_done < one) & (cuts <= max_cut)
 
     def body(c):  # t ∈ [0, 1] goes from the previous level (s_prev) to this one (s)
-        x, t_done, dt, cuts, counts = c
+        x, t_done, dt, cuts, counts, _ = c
         t_try = jnp.minimum(one, t_done + dt)
-        pot, bc = case.at(s_prev + t_try * (s - s_prev), params)
+        # the last trial is at s itself (not s_prev + (s − s_prev), a rounding away)
+        pot, bc = case.at(jnp.where(t_try < one, s_prev + t_try * (s - s_prev), s), params)
         start = jnp.where(counts[0] == 0, x0, x)
         sol = solve(pot, bc, x0=start, solver=solver, throw=False)
-        ok = sol.status == Status.SUCCESS
+        st = jnp.asarray(sol.status, jnp.int32)
+        ok = st == Status.SUCCESS
         its = [jnp.ones((), jnp.int32), sol.stats["steps"], sol.stats["linear_iterations"]]
         its = jnp.stack([jnp.asarray(a, jnp.int32) for a in its])
         return (
@@ -457,8 +465,10 @@ def _reach(case: LoadPathCase, params, solver, x0, x_prev, s_prev, s):
             jnp.where(ok, dt, 0.5 * dt),
             cuts + jnp.where(ok, 0, 1),
             counts + its,
+            st,
         )
 
-    init = (x_prev, jnp.zeros((), s.dtype), one, jnp.int32(0), jnp.zeros(3, jnp.int32))
-    x, _, _, _, counts = jax.lax.while_loop(cond, body, init)
-    return x, counts
+    zero = jnp.zeros((), s.dtype)
+    init = (x_prev, zero, one, jnp.int32(0), jnp.zeros(3, jnp.int32), jnp.int32(Status.SUCCESS))
+    x, t_done, _, _, counts, st = jax.lax.while_loop(cond, body, init)
+    return x, jnp.where(t_done < one, st, Status.SUCCESS).astype(jnp.int32), counts

@@ -17,16 +17,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..solvers import GradientError, ImplicitAdjoint, Newton, check_finite_gradients
+from ..solvers.linear.auto import missing_host_package
 from .elastic import Material, material_parametrization
 from .parameters import Parametrization, make_parametrization
 from .uncertainty import Uncertainty, gauss_newton_uncertainty
 
 __all__ = [
+    "FIT_DEVICE_MAX_DOFS",
+    "FIT_DIRECT_MAX_DOFS",
     "FIT_SOLVER",
     "Objective",
     "bind_solvers",
     "cases_loss",
     "check_cases",
+    "fit_linear",
     "make_objective",
     "parametrize",
 ]
@@ -136,10 +140,50 @@ def check_cases(cases) -> None:
             )
 
 
+FIT_DEVICE_MAX_DOFS = 3_000
+"""``linear="auto"`` in a fit: matrix-free device CG up to this many dofs. The compiled
+objective then holds no host callback, so JAX's persistent cache keeps it and a fresh
+process loads it instead of compiling it (a host solver's ``jax.pure_callback`` makes
+every process recompile the whole objective: 28 s of the 42 s of the small Mooney–Rivlin
+fit of ``scripts/bench_first_result.py``, loaded machine)."""
+
+FIT_DIRECT_MAX_DOFS = {2: 200_000, 3: 20_000}
+"""``linear="auto"`` in a fit: sparse Cholesky above :data:`FIT_DEVICE_MAX_DOFS` up to this
+many dofs (per dimension), where a single solve takes AMG-CG above 10k dofs in 3D
+(:data:`~jaxelastic.solvers.linear.auto.AUTO_DIRECT_MAX_DOFS`). A fit solves the same
+specimen many times to ``rtol = 1e-11``, where the exact Newton steps of a factorisation
+converge in fewer steps than AMG-CG's inexact ones, and preconditions every adjoint solve
+with the last factorisation. On the 10k-dof plate with a hole
+(``scripts/bench_identification.py``, loaded machine, noisy wall times): a loss and
+gradient at a new point took 3 Newton steps per level with it against 5 with AMG-CG, and
+2.0 s against 9.8–13 s for 4 levels (minutes apart); for 20 levels, beside the code with
+AMG-CG and a second solve per level, 12.7 s against 10.6 s per evaluation but 189 s
+against 279 s for the whole fit with its uncertainty (docs/guide/compilation.md). 20k in
+3D is a cautious bound, twice the single-solve one, until the two are compared on an
+idle machine."""
+
+
+def fit_linear(solver: Newton, mesh) -> Newton:
+    """``solver`` with ``linear="auto"`` made the fit's choice for ``mesh`` (device CG up to
+    :data:`FIT_DEVICE_MAX_DOFS`, sparse Cholesky up to :data:`FIT_DIRECT_MAX_DOFS`, else
+    :func:`jaxelastic.solve`'s own choice); any other setting unchanged."""
+    if not isinstance(solver, Newton) or solver.linear not in ("auto", None) or mesh is None:
+        return solver
+    dim, n = int(mesh.dim), int(mesh.n_dofs)
+    if getattr(mesh, "halo", None) is not None:  # sharded: the device multigrid
+        return solver
+    if n <= FIT_DEVICE_MAX_DOFS:
+        return solver.replace(linear="cg")
+    if n <= FIT_DIRECT_MAX_DOFS.get(dim, 0) and missing_host_package("direct") is None:
+        return solver.replace(linear="direct")
+    return solver
+
+
 def bind_solvers(cases, solver: Newton) -> tuple:
-    """One :class:`~jaxelastic.solvers.PreparedSolver` per case: the Newton settings with
-    the linear solver's state for the case's mesh and mask (outside jit)."""
-    bound = tuple(c.bind(solver) for c in cases)
+    """One :class:`~jaxelastic.solvers.PreparedSolver` per case: the Newton settings (with
+    ``linear="auto"`` resolved for a fit, :func:`fit_linear`) with the linear solver's state
+    for the case's mesh and mask (outside jit)."""
+    bound = tuple(c.bind(fit_linear(solver, getattr(c, "mesh", None))) for c in cases)
     for i, (c, b) in enumerate(zip(cases, bound, strict=True)):
         leaves = jax.tree_util.tree_leaves(b)
         if len(leaves) == 1 and leaves[0] is b and not hasattr(b, "dtype"):

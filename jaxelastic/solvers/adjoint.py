@@ -68,6 +68,7 @@ __all__ = [
     "X_STAR",
     "MODES",
     "differentiable_minimize",
+    "differentiable_solution",
     "value_and_grad",
     "check_finite_gradients",
 ]
@@ -320,6 +321,10 @@ def _flag_rest_shape(pot, res: Solution) -> Solution:
 def _reverse(solver: Newton, lstate, adj: ImplicitAdjoint, pot, bc, x0) -> Solution:
     stop = lax.stop_gradient
     res = _flag_rest_shape(pot, minimize(solver, lstate, stop(pot), stop(bc), stop(x0)))
+    return _attach_reverse(solver, lstate, adj, pot, bc, res)
+
+
+def _attach_reverse(solver: Newton, lstate, adj: ImplicitAdjoint, pot, bc, res) -> Solution:
     x = checkpoint_name(res.x, X_STAR)
     status = checkpoint_name(res.status, X_STAR)
     # x* minimises the potential with its terms at the stiffness the solve adapted to
@@ -374,6 +379,44 @@ def _forward_fn(solver: Newton, adj: ImplicitAdjoint):
         return res, res_dot
 
     return solve_fn
+
+
+@functools.lru_cache(maxsize=64)
+def _forward_attach_fn(solver: Newton, adj: ImplicitAdjoint):
+    """Forward-mode rule of :func:`differentiable_solution` (the tangent of
+    :func:`_forward_fn` at a given solution)."""
+
+    @jax.custom_jvp
+    def attach(pot, bc, res, lstate):
+        return res
+
+    @attach.defjvp
+    def jvp(primals, tangents):
+        pot, bc, res, lstate = primals
+        pot_dot, bc_dot, _, _ = tangents
+        x_dot = _tangent(solver, adj, pot, bc, res, lstate, pot_dot, bc_dot)
+        res_dot = jax.tree_util.tree_map(_zero_tangent, res)._replace(x=x_dot)
+        return res, res_dot
+
+    return attach
+
+
+def differentiable_solution(
+    solver: Newton, lstate: LinearState, adj: ImplicitAdjoint, pot: Potential, bc: Dirichlet, res
+) -> Solution:
+    """``res``, a solve of ``pot`` and ``bc`` found without derivatives (e.g. the last
+    sub-step of a continuation, or a Newton solve on ``lax.stop_gradient`` inputs), with
+    implicit derivatives of ``res.x`` with respect to ``pot`` and ``bc.values``, as
+    :func:`differentiable_minimize` would give them, without solving again.
+
+    ``res.status`` says whether ``res.x`` is an equilibrium of ``pot`` (not SUCCESS: the
+    derivatives are NaN); ``res.stats`` must hold what
+    :func:`~jaxelastic.solvers.newton.solved_potential` reads for ``pot``'s adaptive terms
+    (nothing for a potential without contact). Pure and jit-able."""
+    res = jax.tree_util.tree_map(lax.stop_gradient, res)
+    if adj.mode == "reverse":
+        return _attach_reverse(solver, lstate, adj, pot, bc, res)
+    return _forward_attach_fn(solver, adj)(pot, bc, res, lstate)
 
 
 def differentiable_minimize(
