@@ -231,10 +231,11 @@ print(jax.config.jax_compilation_cache_dir, jax.config.jax_compilation_cache_max
 @pytest.mark.parametrize("switch", ["", "0"])
 def test_library_enables_the_default_cache_lazily(tmp_path, switch):
     """A fresh process: nothing at import; the first mesh enables JAX's persistent cache
-    in $JAXELASTIC_CACHE_DIR with the size limit (JAX then locks the directory around
-    each read, write and eviction: safe with concurrent processes); JAXELASTIC_CACHE=0
-    leaves it off; a cache the user configured (as this test session does) is kept."""
-    from jaxelastic.cache import cache_max_bytes, ensure_persistent_cache
+    in $JAXELASTIC_CACHE_DIR without JAX's size limit (whose eviction scan reads every
+    entry at every write; the library prunes once per process instead);
+    JAXELASTIC_CACHE=0 leaves it off; a cache the user configured (as this test session
+    does) is kept."""
+    from jaxelastic.cache import ensure_persistent_cache
 
     assert ensure_persistent_cache() is None  # the session's own cache stays
     env = dict(os.environ, JAXELASTIC_CACHE_DIR=str(tmp_path / "c"), JAXELASTIC_CACHE=switch)
@@ -247,8 +248,26 @@ def test_library_enables_the_default_cache_lazily(tmp_path, switch):
     if switch == "0":
         assert path == "None"
     else:
-        assert path == str(tmp_path / "c") and int(size) == cache_max_bytes() > 0
+        assert path == str(tmp_path / "c") and int(size) == -1  # JAX: no size limit
         assert os.path.isdir(path)
+
+
+def test_prune_keeps_the_most_recently_written_entries(tmp_path):
+    """The cache is pruned to its size limit by deleting the least recently written
+    entries (with their access-time files); other files stay; a missing directory is
+    nothing to prune."""
+    from jaxelastic.cache import prune_cache
+
+    for i in range(6):
+        (tmp_path / f"k{i}-cache").write_bytes(b"x" * 100)
+        (tmp_path / f"k{i}-atime").write_bytes(b"t")
+        os.utime(tmp_path / f"k{i}-cache", ns=(10**18 + i * 10**9, 10**18 + i * 10**9))
+    (tmp_path / "other").write_bytes(b"y" * 1000)
+    assert prune_cache(str(tmp_path), 350) == 3
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == ["k3-atime", "k3-cache", "k4-atime", "k4-cache", "k5-atime", "k5-cache", "other"]
+    assert prune_cache(str(tmp_path), 10**6) == 0
+    assert prune_cache(str(tmp_path / "missing"), 0) == 0
 
 
 def test_sparsity_pattern_kept_on_disk(tmp_path, monkeypatch):
