@@ -99,10 +99,17 @@ def prepare(s: Newton, pot: Potential, bc: Dirichlet, state: NewtonState, Ke=Non
     return Prepared(system, dD, rhs, tol, bn)
 
 
+def _regularized(s: Newton, pot: Potential) -> bool:
+    """Whether the Levenberg–Marquardt safeguard runs: ``s.regularize``, and a potential
+    whose loads are conservative (it adapts λ by the energy's actual against predicted
+    decrease; a follower load has no energy, and there its residual line search leads)."""
+    return s.regularize and is_conservative(pot.pressure)
+
+
 def _shifted(s: Newton, pot: Potential, lam) -> Potential:
     """The potential of the Newton system: its Hessian shifted by ``lam``·I
     (:func:`~.levenberg.shifted`) with the safeguard on."""
-    return levenberg.shifted(pot, lam) if s.regularize else pot
+    return levenberg.shifted(pot, lam) if _regularized(s, pot) else pot
 
 
 def _retry_enabled(s: Newton, system: NewtonSystem) -> bool:
@@ -180,7 +187,7 @@ def finish(
         stall=since >= levenberg.PATIENCE,
         projected=lin.stats["projected"],
     )
-    if s.regularize:  # a failed line search is retried with a larger shift
+    if _regularized(s, pot):  # a failed line search is retried with a larger shift
         st = jnp.where(shift.rescue & (st == Status.LINE_SEARCH_FAILED), RUNNING, st)
         st = jnp.where(shift.rescue & (k + 1 >= s.max_steps), Status.MAX_STEPS, st)
     its = lin.stats["iterations"].astype(jnp.int32)
@@ -199,7 +206,7 @@ def finish(
         neg=state.neg + neg.astype(jnp.int32),
         proj=state.proj + lin.stats["projected"].astype(jnp.int32),
         floor=floor,
-        lam=shift.lam if s.regularize else state.lam,
+        lam=shift.lam if _regularized(s, pot) else state.lam,
         reg=state.reg + (state.lam > 0).astype(jnp.int32),
         fails=shift.fails,
         best=best,

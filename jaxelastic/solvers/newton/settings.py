@@ -69,8 +69,9 @@ class Newton:
             several iterations: a flat, curved valley such as a nearly free rotation) the
             Hessian is shifted by λI, λ adapted by the ratio of actual to predicted
             decrease of Π, and back to 0 (plain Newton) once steps are predicted well.
-            Solves where Newton behaves never shift. ``stats["regularized"]``: the
-            iterations solved with a shift.
+            Solves where Newton behaves never shift; a non-conservative follower load
+            (no Π to decrease) never does. ``stats["regularized"]``: the iterations
+            solved with a shift.
     """
 
     rtol: float = 1e-8
