@@ -42,7 +42,7 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_compilation_cache_dir", os.environ["JAXELASTIC_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-# No size limit here (unlike the library's default cache, jaxelastic.cache): with one, JAX
+# No JAX size limit (as in the library's default cache, jaxelastic.cache): with one, JAX
 # locks the directory and, on every write, reads the size and access time of every entry
 # to decide evictions — with the several thousand entries of a test session that took the
 # default tier from 7.0 to 9.9 minutes (system time 106 -> 199 s). Without the lock a
