@@ -57,6 +57,10 @@ def test_fit_table_of_a_measured_fit_names_every_parameter_with_its_error():
     for needle in ("c10", "c01", "± 8.7e+03", "kappa = 2e+07", "f.csv", "d.npz", "reduced χ² 1.08"):
         assert needle in text, (needle, text)
     assert "E " not in text.split("\n", 1)[1].split("time")[0]  # no (E, ν) rows
+    assert "failed trials" not in text
+    s = _summary()
+    s["result"]["failures"] = ["iteration 3, case 0: MAX_STEPS at level 2"]
+    assert "failed trials  1; last: iteration 3, case 0: MAX_STEPS" in fit_table(s)
 
 
 def test_the_shipped_scene_reads_its_measurements():

@@ -909,7 +909,8 @@ def fit_table(s: dict, *, compile_s: float | None = None, wall_s: float | None =
 
 def _measured_rows(s: dict) -> list[tuple[str, str]]:
     """Rows of a fit to measurements: each fitted parameter ± its standard error (and its
-    start), the held ones, each observation's RMS residual against its σ, the reduced χ²."""
+    start), the held ones, each observation's RMS residual against its σ, the trial
+    points whose solves failed, the reduced χ²."""
     rows = []
     se, init = s.get("standard_errors") or {}, s.get("initial") or {}
     for k, v in s["fitted"].items():
@@ -931,6 +932,9 @@ def _measured_rows(s: dict) -> list[tuple[str, str]]:
                     f"{_g(o['rms'], 3)} (σ {_g(o['sigma'], 3)})",
                 )
             )
+    failures = s["result"].get("failures") or []
+    if failures:  # trial points whose solves failed: the last ones, as the summary has them
+        rows.append(("failed trials", f"{len(failures)}; last: {failures[-1]}"))
     u = s.get("uncertainty") or {}
     if u.get("reduced_chi2") is not None:
         rows.append(
