@@ -15,7 +15,6 @@ directory that relative mesh paths and ``"module:function"`` imports resolve aga
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, Union
@@ -609,18 +608,7 @@ class MaterialSpec(Table):
         kd = self.kappa_dispersion
         if kd is not None and not 0.0 <= kd <= 1.0 / 3.0:
             raise fail(f"{{at}}.kappa_dispersion must lie in [0, 1/3], got {kd!r}")
-        if _is_vector(self.f0) and _is_vector(self.s0) and _parallel(self.f0, self.s0):
-            raise fail(f"{{at}}.s0 must not be parallel to f0, got {self.s0}")  # Guccione
         return self
-
-
-def _parallel(f0: Any, s0: Any) -> bool:
-    """Whether two 2- or 3-vectors are parallel (|f × s| ≤ 1e-8 |f| |s|)."""
-    f, s = ([float(x) for x in v] + [0.0] * (3 - len(v)) for v in (f0, s0))
-    cross = math.hypot(
-        f[1] * s[2] - f[2] * s[1], f[2] * s[0] - f[0] * s[2], f[0] * s[1] - f[1] * s[0]
-    )
-    return not cross > 1e-8 * math.hypot(*f) * math.hypot(*s)
 
 
 def _is_vector(v) -> bool:
