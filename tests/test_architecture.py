@@ -615,16 +615,16 @@ if __name__ == "__main__":  # pragma: no cover - a quick listing without pytest
         print(_report(title, items))
 
 
-def test_the_lazy_top_level_names_are_the_typed_ones_and_all_of_them():
-    """``jaxelastic/__init__.py`` names its public API three times — the imports under
-    ``if TYPE_CHECKING:`` (for type checkers and the API docs), the lazy table ``_LAZY``
-    (what runs) and ``__all__`` —: the three agree, and each lazy entry resolves to the
-    object the typed import names."""
+@pytest.mark.parametrize("package", ["jaxelastic", "jaxelastic.scene"])
+def test_the_lazy_package_names_are_the_typed_ones_and_all_of_them(package):
+    """A lazy package's ``__init__.py`` names its public API three times — the imports
+    under ``if TYPE_CHECKING:`` (for type checkers and the API docs), the lazy table
+    ``_LAZY`` (what runs) and ``__all__`` —: the three agree, and each lazy entry resolves
+    to the object the typed import names."""
     import importlib
 
-    import jaxelastic
-
-    path = ROOT / "jaxelastic" / "__init__.py"
+    pkg = importlib.import_module(package)
+    path = ROOT / package.replace(".", "/") / "__init__.py"
     tree = ast.parse(path.read_text(encoding="utf-8"))
     typed: dict[str, tuple[str, str | None]] = {}
     for node in ast.walk(tree):
@@ -637,13 +637,11 @@ def test_the_lazy_top_level_names_are_the_typed_ones_and_all_of_them():
                     typed[name] = (
                         (where + alias.name, None) if imp.module is None else (where, alias.name)
                     )
-    lazy = jaxelastic._LAZY  # the table itself, as the package defines it
+    lazy = pkg._LAZY  # the table itself, as the package defines it
     assert set(typed) == set(lazy), set(typed) ^ set(lazy)
     for name, expect in typed.items():
         assert tuple(lazy[name]) == expect, (name, lazy[name], expect)
-        module = importlib.import_module(expect[0], "jaxelastic")
+        module = importlib.import_module(expect[0], package)
         obj = module if expect[1] is None else getattr(module, expect[1])
-        assert getattr(jaxelastic, name) is obj, name
-    assert set(jaxelastic.__all__) <= set(lazy) | set(vars(jaxelastic)), set(
-        jaxelastic.__all__
-    ) - set(lazy)
+        assert getattr(pkg, name) is obj, name
+    assert set(pkg.__all__) <= set(lazy) | set(vars(pkg)), set(pkg.__all__) - set(lazy)

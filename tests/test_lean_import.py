@@ -103,3 +103,28 @@ def test_cg_and_auto_solve_without_host_packages(lean):
     assert lean["diff"] <= 1e-9, lean["diff"]
     assert len(lean["warnings"]) == 1, lean["warnings"]
     assert "pypardiso" in lean["warnings"][0] and "multilevel" in lean["warnings"][0]
+
+
+def test_a_scene_run_loads_only_what_it_needs_and_preloads_matplotlib():
+    """Running a scene imports neither the fitting modules nor the scene-reference
+    generator (``jaxelastic.scene`` is lazy), and :func:`jaxelastic.plot.preload`
+    imports matplotlib's figure and Agg modules in its background thread."""
+    code = textwrap.dedent(
+        """
+        import json, sys
+        import jaxelastic.scene.run
+        from jaxelastic import plot
+        before = sorted(m for m in sys.modules if m.startswith(("jaxelastic.fitting",
+                        "jaxelastic.scene.docs", "jaxelastic.scene.fit", "matplotlib")))
+        plot.preload().join(120)
+        import jaxelastic.scene as S
+        print(json.dumps(dict(before=before, after=[m in sys.modules for m in plot.PRELOADED],
+                              run_fit=S.run_fit.__module__)))
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["before"] == [], out["before"]
+    assert out["after"] == [True, True]
+    assert out["run_fit"] == "jaxelastic.scene.fit"

@@ -22,19 +22,23 @@ force curve and DIC points), ``fold``, ``press``, ``swing2d``, ``twist``, ``vent
 idealised left ventricle inflated to 10 kPa: Land et al. 2015, problem 2).
 """
 
-from .docs import reference_markdown as reference_markdown
-from .errors import SceneError as SceneError
-from .fit import run_fit as run_fit
-from .load import Scene as Scene
-from .load import apply_overrides as apply_overrides
-from .load import load_scene as load_scene
-from .load import shipped_scenes as shipped_scenes
-from .problem import Built as Built
-from .problem import build as build
-from .run import run_scene as run_scene
-from .schema import SceneSpec as SceneSpec
-from .schema import json_schema as json_schema
-from .where import where_mask as where_mask
+import importlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the names as the type checker and the API docs see them
+    from .docs import reference_markdown as reference_markdown
+    from .errors import SceneError as SceneError
+    from .fit import run_fit as run_fit
+    from .load import Scene as Scene
+    from .load import apply_overrides as apply_overrides
+    from .load import load_scene as load_scene
+    from .load import shipped_scenes as shipped_scenes
+    from .problem import Built as Built
+    from .problem import build as build
+    from .run import run_scene as run_scene
+    from .schema import SceneSpec as SceneSpec
+    from .schema import json_schema as json_schema
+    from .where import where_mask as where_mask
 
 __all__ = [
     "SceneError",
@@ -51,3 +55,36 @@ __all__ = [
     "json_schema",
     "reference_markdown",
 ]
+
+_LAZY = {
+    # name: (module, attribute)
+    "reference_markdown": (".docs", "reference_markdown"),
+    "SceneError": (".errors", "SceneError"),
+    "run_fit": (".fit", "run_fit"),
+    "Scene": (".load", "Scene"),
+    "apply_overrides": (".load", "apply_overrides"),
+    "load_scene": (".load", "load_scene"),
+    "shipped_scenes": (".load", "shipped_scenes"),
+    "Built": (".problem", "Built"),
+    "build": (".problem", "build"),
+    "run_scene": (".run", "run_scene"),
+    "SceneSpec": (".schema", "SceneSpec"),
+    "json_schema": (".schema", "json_schema"),
+    "where_mask": (".where", "where_mask"),
+}
+
+
+def __getattr__(name: str):
+    """The package's names, each imported when first used (PEP 562): a static scene run
+    imports neither the fitting modules nor the reference generator, and
+    ``jaxelastic.scene.interrupt`` (the command's signal handling) loads on its own."""
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    where, attribute = _LAZY[name]
+    value = getattr(importlib.import_module(where, __name__), attribute)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import dynamics
+from .. import plot as _plot
 from ..io import TimeSeriesWriter
 from ..loads import Dirichlet
 from ..parallel.distributed import host_array
@@ -603,6 +604,8 @@ def run_scene(scene, out_dir, progress: bool = True) -> dict:
     summary: dict[str, Any] = dict(scene=scene.to_dict(), scene_file=scene.source, timings={})
     try:
         t0 = time.perf_counter()
+        if scene.spec.output.png:
+            _plot.preload()  # matplotlib imports beside the build and the solve
         with interrupt.immediate():  # no step boundary inside a build
             built = build(scene)
         summary = run_header(built, out)
