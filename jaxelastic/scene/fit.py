@@ -44,7 +44,7 @@ from .run import static_solve
 from .schema import FitCase, FitSpec
 from .where import where_mask
 
-__all__ = ["run_fit", "region_labels", "read_observed", "highlights"]
+__all__ = ["run_fit", "region_labels", "read_observed"]
 
 
 # ----------------------------------------------------------------------------------------
@@ -662,53 +662,3 @@ def _observation_panel(ax, case, o, pred) -> None:
         return
     ax.plot(np.ravel(data), np.ravel(pred), ".", ms=3)
     ax.set(xlabel="measured [m]", ylabel="fitted [m]", title=o.kind)
-
-
-# ----------------------------------------------------------------------------------------
-# command-line summary
-# ----------------------------------------------------------------------------------------
-
-
-def _fmt(x) -> str:
-    return ", ".join(f"{a:.6g}" for a in np.atleast_1d(x))
-
-
-def _measured_highlights(s: dict) -> str:
-    r = s["result"]
-    lines = [
-        f"fit of scene {s['scene']['name']!r}: {s['status']} ({r['stop_reason']}, "
-        f"{r['iterations']} iterations, chi2 {r['loss']:.4g})"
-    ]
-    se = s["standard_errors"]
-    lines += [f"  {k} = {v:.6g} ± {se[k]:.2g}" for k, v in s["fitted"].items()]
-    for i, c in enumerate(s["cases"]):
-        for j, o in enumerate(c["observations"]):
-            lines.append(f"  case {i} observation {j} ({o['kind']}): RMS residual {o['rms']:.3g}")
-    lines += [f"  failed trial: {f}" for f in r["failures"][-3:]]
-    lines.append(f"  total {s['timings']['total']:.1f} s; outputs in {s['outputs']['directory']}")
-    return "\n".join(lines)
-
-
-def highlights(s: dict) -> str:
-    """A few lines summarising a fit summary (for the command line)."""
-    if "fitted" in s:
-        return _measured_highlights(s)
-    r = s["result"]
-    lines = [
-        f"fit of scene {s['scene']['name']!r}: {s['status']} ({r['stop_reason']}, "
-        f"{r['iterations']} iterations, loss {r['loss']:.3e})"
-    ]
-    t = s.get("target")
-    for k, name in (("E", "E "), ("nu", "nu")):
-        err = ""
-        if t:
-            e = ", ".join(f"{a:.2e}" for a in np.atleast_1d(r[k + "_rel_error"]))
-            err = f"  (true {_fmt(t[k])}, rel. error {e})"
-        lines.append(f"  {name} = {_fmt(r[k])}{err}")
-    o = s["observations"]
-    lines.append(
-        f"  {len(s['cases'])} load case(s), {o['n_markers']} observed nodes "
-        f"({100 * o['fraction_of_nodes']:.1f} %), noise {o['noise']:g}"
-    )
-    lines.append(f"  total {s['timings']['total']:.1f} s; outputs in {s['outputs']['directory']}")
-    return "\n".join(lines)
