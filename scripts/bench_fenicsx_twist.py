@@ -36,8 +36,10 @@ The FEniCSx program solves the same discrete problem:
   choice is a sparse Cholesky below 10k dofs and AMG-preconditioned CG above (both n = 19
   and n = 29 are above).
 
-The FEniCSx process writes no VTU or figure (jaxelastic's run writes its summary, a VTU
-and a PNG: ``outputs`` in the table).
+The FEniCSx processes run with ``OMP_NUM_THREADS=1`` unless it is set (one thread per
+rank, as usual with MPI); PETSc options may be added through ``$PETSC_OPTIONS`` (the KSP
+reads them). They write no VTU or figure (jaxelastic's run writes its summary, a VTU and
+a PNG: ``outputs`` in the table).
 
 Reported per (n, code, ranks, cache): the wall time of the whole process (the minimum of
 ``--repeat`` runs; the runs are interleaved), the time inside (jaxelastic: the summary's
@@ -65,10 +67,12 @@ into a Python 3.12 virtual environment of its own::
 FFCx's JIT needs a C compiler, e.g. gcc). The FEniCSx processes run that venv's Python and
 import ``dolfinx_solver`` before ``dolfinx``.
 
-Usage (on an idle machine; this script runs in jaxelastic's own environment)::
+Usage (on an idle machine; this script runs in jaxelastic's own environment, with the
+defaults shown)::
 
     python scripts/bench_fenicsx_twist.py --fenicsx-python ~/fenicsx-venv/bin/python
         [--n 19,29] [--ranks 1,2] [--repeat 3] [--out out/bench/fenicsx_twist.json]
+        [--label idle]
 
 ``--fenicsx-python`` defaults to ``$FENICSX_PYTHON``; ``--mpirun`` to the ``mpirun`` beside
 that Python.
