@@ -361,8 +361,8 @@ def pressure_load(mesh: Mesh, facets, pressure, origin=None, *, follower: bool =
         exact (conservative) for closed cavities and for rims that are fixed or slide on a
         symmetry plane; :func:`jaxelastic.solve` checks that against its Dirichlet data.
         ``follower=True`` declares an open surface whose rim moves: the exact follower
-        residual with a symmetric quasi-Newton tangent (no potential; reverse-mode
-        derivatives only).
+        residual, no potential, a non-symmetric tangent (Newton solves with it by GMRES:
+        :attr:`~jaxelastic.solvers.newton.Newton.tangent`).
     """
     return pressure_term(mesh, facets, pressure, origin, follower=follower)
 

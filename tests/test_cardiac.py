@@ -285,7 +285,7 @@ def test_scene_per_cell_parallel_basis_is_refused():
         build(load_scene("fibre_block", overrides=ov))
 
 
-@pytest.mark.extended  # one follower-pressure quasi-Newton solve, ~60 steps (~15 s loaded)
+@pytest.mark.extended  # one follower-pressure Newton solve, ~55 steps (~20 s loaded)
 def test_land_problem_1_coarse():
     """Land et al. 2015 problem 1 (the Guccione beam, follower pressure 0.004 kPa on its
     bottom face) on a 10 × 1 × 1 P2 mesh, κ = 1000 kPa: the deflected z of (10, 0.5, 1)

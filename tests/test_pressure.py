@@ -387,7 +387,7 @@ def test_follower_residual_is_the_exact_follower_force_everywhere():
 
 @pytest.mark.extended
 def test_follower_load_newton_converges_to_the_follower_equilibrium():
-    """The quasi-Newton (symmetric part of the tangent, line search on the residual)
+    """Newton (the true, non-symmetric tangent by default; line search on the residual)
     reaches the equilibrium of elasticity with the exact follower force (checked with the
     independent facet-by-facet force)."""
     m, term, bc, pot = _cantilever_follower(2.0)
@@ -403,9 +403,10 @@ def test_follower_load_newton_converges_to_the_follower_equilibrium():
 
 @pytest.mark.extended
 def test_follower_load_gradient_uses_the_transposed_jacobian():
-    """d(tip height)/d(p, μ) through a follower-load solve (reverse mode: the adjoint
-    solves with the transpose of the non-symmetric Jacobian) against fourth-order central
-    differences; forward mode is refused."""
+    """d(tip height)/d(p, μ) through a follower-load solve against fourth-order central
+    differences: reverse mode (the adjoint solves with the transpose of the non-symmetric
+    Jacobian), forward mode (the tangent solves with the Jacobian) and reverse over
+    forward."""
     m, term, bc, pot = _cantilever_follower(0.5)
     solver = je.Newton(rtol=1e-12, max_steps=200)
 
@@ -426,9 +427,15 @@ def test_follower_load_gradient_uses_the_transposed_jacobian():
         fd.append((-f[0] + 8 * f[1] - 8 * f[2] + f[3]) / (12 * h))
     np.testing.assert_allclose(g, fd, rtol=1e-6)
     fwd = je.ImplicitAdjoint(mode="forward")
-    with pytest.raises(NotImplementedError, match="forward-mode"):
-        jax.jvp(
-            lambda p: je.solve(pot.replace(pressure=term.replace(pressure=p)), bc, adjoint=fwd).x,
-            (jnp.full(1, 0.5),),
-            (jnp.ones(1),),
+
+    def tip_fwd(theta):
+        q = pot.replace(
+            params=je.Lame(theta[1], 1.5 * theta[1]),
+            pressure=term.replace(pressure=jnp.reshape(theta[0], (1,))),
         )
+        return je.solve(q, bc, solver=solver, adjoint=fwd, throw=False).x[-1, 2]
+
+    # forward mode: the tangent solve with the true Jacobian (GMRES), and reverse mode
+    # over it (its transpose solve with Jᵀ)
+    np.testing.assert_allclose(np.asarray(jax.jit(jax.jacfwd(tip_fwd))(theta)), fd, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(jax.jit(jax.grad(tip_fwd))(theta)), fd, rtol=1e-6)

@@ -37,12 +37,15 @@ facet selectors of the tractions).
 **Open surfaces with a moving rim** (``follower=True``): the load has no potential. The
 term's gradient is then the exact follower residual ``p ∫ n N_a da`` facet by facet
 (:func:`facet_forces`), its Hessian blocks the *symmetric part* of the true facet tangent
-(a quasi-Newton tangent: every symmetric linear solver still applies; the skew part
-``(J − Jᵀ)/2`` is left out, so Newton converges linearly), and its energy ``−p V`` of the
+(so every symmetric solver and preconditioner still applies to them) and
+:meth:`Pressure.skew_vp` the skew part ``(J − Jᵀ)/2`` as a matrix-free product: Newton
+(``Newton(tangent="auto")``) solves with their sum, the true tangent, by GMRES
+preconditioned by the symmetric part (quadratic convergence); ``tangent="symmetric"``
+leaves the skew part out (a quasi-Newton, linear convergence). Its energy ``−p V`` of the
 cone-closed surface serves only to reject inverted trial steps: the Newton line search
-accepts a step on the decrease of the residual (:func:`is_conservative`). Reverse-mode
-derivatives through such a solve solve the adjoint with the transpose of the true Jacobian
-(:mod:`jaxelastic.solvers.adjoint`); forward mode is refused.
+accepts a step on the decrease of the residual (:func:`is_conservative`). Derivatives
+through such a solve, reverse and forward mode, solve with the true Jacobian or its
+transpose (:mod:`jaxelastic.solvers.adjoint`).
 
 **Volume control** (the cavity volume prescribed, the pressure an unknown): with ``target``
 ``T`` and ``kappa`` ``κ`` set, the term is the augmented Lagrangian
@@ -138,7 +141,7 @@ class Pressure:
             surface is pressure controlled), or None (no volume control).
         element: static, the mesh's element name.
         follower: static; True for an open surface whose rim moves (not conservative:
-            the exact follower residual, a symmetric quasi-Newton tangent).
+            the exact follower residual, a non-symmetric tangent).
     """
 
     facets: jax.Array
@@ -233,6 +236,17 @@ class Pressure:
         Jv = jax.jvp(self.gradient, (x,), (v,))[1]
         JTv = jax.vjp(self.gradient, x)[1](v)[0]
         return 0.5 * (Jv + JTv)
+
+    def skew_vp(self, x: jax.Array, v: jax.Array) -> jax.Array:
+        """``½(J − Jᵀ)·v`` ``(n_nodes, d)``, the skew part of the tangent ``J = ∂g/∂x`` of
+        :meth:`gradient` (zero for a conservative term): the symmetric part
+        (:meth:`hvp`, :meth:`facet_hessians`) plus this is the true tangent ``J v`` of a
+        ``follower`` term."""
+        if not self.follower:
+            return jnp.zeros_like(v)
+        Jv = jax.jvp(self.gradient, (x,), (v,))[1]
+        JTv = jax.vjp(self.gradient, x)[1](v)[0]
+        return 0.5 * (Jv - JTv)
 
     def facet_hessians(self, x: jax.Array) -> jax.Array:
         """``(m, k·d, k·d)`` the Hessian of ``Π_p`` per facet (node-major), without volume
@@ -512,5 +526,5 @@ def check_closed(term: Pressure, points, mask, values=None, *, what: str = "pres
                 "follower pressure is then not conservative (no potential, non-symmetric "
                 "tangent). Fix the rim, constrain it to a symmetry plane through c (set the "
                 "closing point with origin = [...]), load a closed surface, or declare the "
-                "load a follower load (follower=True: exact residual, quasi-Newton tangent)"
+                "load a follower load (follower=True: exact residual, non-symmetric tangent)"
             )

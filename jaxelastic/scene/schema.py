@@ -788,7 +788,7 @@ class PressureSpec(Table):
     follower: bool = Field(
         default=False,
         description="an open surface whose rim moves: the exact follower load without a "
-        "potential (quasi-Newton, linear convergence; see the pressure guide)",
+        "potential (Newton with its non-symmetric tangent; see the pressure guide)",
     )
 
 

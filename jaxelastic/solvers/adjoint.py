@@ -28,9 +28,14 @@ or ``jax.jvp`` it is the same solve, on concrete values, as without differentiat
 compiled functions of their own.
 
 A follower pressure on an open surface (``Pressure.follower``) has no potential and a
-non-symmetric Jacobian ``J``: its reverse-mode adjoint solves ``J_ffᵀ λ = x̄_f`` with the
-transpose (``Jᵀv`` by reverse-mode autodiff of the residual; restarted GMRES, Saad &
-Schultz 1986) and ``v̄_D = x̄_D − (Jᵀλ)_D``; forward mode is refused for it.
+non-symmetric Jacobian ``J`` (the symmetric Hessian plus the skew pressure stiffness,
+:meth:`~jaxelastic.mechanics.pressure.Pressure.skew_vp`): its reverse-mode adjoint solves
+``J_ffᵀ λ = x̄_f`` with the transpose and ``v̄_D = x̄_D − (Jᵀλ)_D``, its forward-mode
+tangent ``J_ff ẋ_f = −(∂g_f/∂θ)·θ̇ − J_fD v̇_D`` (a ``lax.custom_linear_solve`` whose
+transpose solves with ``Jᵀ``, so reverse over forward works too); both by restarted GMRES
+(:func:`~jaxelastic.solvers.linear.gmres.gmres`, Saad & Schultz 1986) preconditioned by
+the linear solver's preconditioner of the symmetric part
+(:meth:`~jaxelastic.solvers.linear.LinearSolver.symmetric_preconditioner`).
 
 Failure is loud: if the forward Newton solve or the adjoint solve did not converge,
 *every* floating-point cotangent is NaN; :func:`value_and_grad` (and the fitting loop)
@@ -58,6 +63,7 @@ from ..mechanics import potential as pot_mod
 from ..mechanics.potential import Potential
 from ..mechanics.pressure import is_conservative
 from .linear import HostSolver, LinearState, NewtonSystem, assemble_upper, exact_system
+from .linear.gmres import gmres
 from .linear.system import mass_or_zeros
 from .newton import Newton, minimize, solved_potential
 from .results import Solution, Status
@@ -175,32 +181,38 @@ def _pullback(pot, mask, x, ok, lam, H_lam, xbar, which: tuple[bool, ...]):
     return _nan_unless(ok, pot_bar), _nan_unless(ok, vals_bar)
 
 
-GMRES_RESTART = 60
-"""Krylov dimension of the restarted GMRES of a non-symmetric adjoint (follower load)."""
+def _nonsymmetric_ff(
+    solver: Newton, lstate, adj: ImplicitAdjoint, system: NewtonSystem, rhs, *, transpose: bool
+):
+    """Solve ``J_ff y = rhs_f`` (``transpose``: ``J_ffᵀ y = rhs_f``) with the true,
+    non-symmetric tangent ``J`` of a follower load (``system``: :func:`exact_system` with
+    ``exact_tangent=True``; ``Jᵀ = J − 2·skew``) by GMRES preconditioned by the linear
+    solver's preconditioner of the symmetric part. Returns ``(y, converged)``."""
+    fm = system.free.astype(rhs.dtype)
+    b = fm * rhs
+    term = system.pot.pressure
+    assert term is not None
+    x = system.x
 
+    def AT(v):
+        w = fm * v
+        return fm * (system.H(w) - 2.0 * term.skew_vp(x, w)) + (1.0 - fm) * v
 
-def _transpose_solve(pot: Potential, x, mask, adj: ImplicitAdjoint, xbar):
-    """A follower load's adjoint ``J_ffᵀ λ = x̄_f`` with the true (non-symmetric) Jacobian
-    ``J = ∂g/∂x`` (``Jᵀv`` by reverse mode), by restarted GMRES (Saad & Schultz 1986),
-    unpreconditioned: ``(λ, Jᵀ, converged)``."""
-    fm = (~mask).astype(x.dtype)
-    _, JT_full = jax.vjp(lambda y: pot_mod.gradient(pot, y), x)
-
-    def JT(v):
-        return JT_full(v)[0]
-
-    def A(v):
-        return fm * JT(fm * v) + (1.0 - fm) * v
-
-    b = fm * xbar
-    maxiter = max(1, adj.max_iter // GMRES_RESTART)
-    y, _ = jax.scipy.sparse.linalg.gmres(
-        A, b, tol=adj.rtol, atol=0.0, restart=GMRES_RESTART, maxiter=maxiter
-    )
-    r = A(y) - b
+    M, _ = solver.linear.symmetric_preconditioner(lstate, system, system.Ke, jnp.int32(0))
     bn = jnp.sqrt(jnp.sum(b * b))
-    ok = (jnp.sqrt(jnp.sum(r * r)) <= 10.0 * adj.rtol * bn) | (bn == 0)
-    return fm * y, JT, ok & jnp.all(jnp.isfinite(y))
+    res = gmres(AT if transpose else system.A, b, M, tol=adj.rtol * bn, max_iter=adj.max_iter)
+    y = fm * res.x
+    ok = (res.status == Status.SUCCESS) | (bn == 0)
+    return y, ok & jnp.all(jnp.isfinite(y))
+
+
+def _transpose_solve(solver: Newton, lstate, pot: Potential, x, mask, adj: ImplicitAdjoint, xbar):
+    """A follower load's adjoint ``J_ffᵀ λ = x̄_f`` with the true (non-symmetric) Jacobian
+    ``J = ∂g/∂x``: ``(λ, Jᵀλ, converged)`` (:func:`_nonsymmetric_ff`)."""
+    system = exact_system(pot, x, mask, exact_tangent=True)
+    lam, ok = _nonsymmetric_ff(solver, lstate, adj, system, xbar, transpose=True)
+    _, JT = jax.vjp(lambda y: pot_mod.gradient(pot, y), x)
+    return lam, JT(lam)[0], ok
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 8))
@@ -212,8 +224,7 @@ def _cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, lstate
         lam, adj_ok = _solve_ff(solver, lstate, adj, system, xbar)
         K_lam = system.H(lam)  # symmetric: Kᵀλ = Kλ
     else:  # a follower load: the transpose of the non-symmetric Jacobian
-        lam, KT, adj_ok = _transpose_solve(pot, x, mask, adj, xbar)
-        K_lam = KT(lam)
+        lam, K_lam, adj_ok = _transpose_solve(solver, lstate, pot, x, mask, adj, xbar)
     ok = (status == Status.SUCCESS) & adj_ok
     return _pullback(pot, bc.mask, x, ok, lam, K_lam, xbar, which)
 
@@ -257,18 +268,6 @@ def _host_cotangents(solver: Newton, adj: ImplicitAdjoint, pot, bc, x, status, l
     y, ok = solver.linear.host_exact(lstate, data, md, b, adj.rtol, adj.max_iter)
     lam = jnp.asarray(np.asarray(y) * np.asarray(fm), x.dtype)
     return _host_pullback(pot, bc.mask, x, status, lam, jnp.asarray(ok), xbar, Ke, which)
-
-
-def _refuse_follower(pot: Potential) -> None:
-    """The forward-mode tangent solve assumes a symmetric Hessian: refuse a follower
-    pressure there (reverse mode solves with the transpose, :func:`_transpose_solve`)."""
-    if not is_conservative(pot.pressure):
-        raise NotImplementedError(
-            "forward-mode derivatives (ImplicitAdjoint(mode='forward')) through a solve with "
-            "a follower pressure on an open surface (Pressure.follower) are not implemented: "
-            "use reverse mode (jax.grad, the default), whose adjoint solves with the "
-            "transpose of the non-symmetric Jacobian"
-        )
 
 
 @functools.lru_cache(maxsize=64)
@@ -339,10 +338,10 @@ def _zero_tangent(a):
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _tangent(solver: Newton, adj: ImplicitAdjoint, pot, bc, res: Solution, lstate, pot_dot, bc_dot):
     """``ẋ`` of x* (one tangent solve, transposable; NaN if anything failed)."""
-    _refuse_follower(pot)
     x = res.x
     fm = (~bc.mask).astype(x.dtype)
-    system = exact_system(solved_potential(pot, res), x, bc.mask)
+    follower = not is_conservative(pot.pressure)
+    system = exact_system(solved_potential(pot, res), x, bc.mask, exact_tangent=follower)
 
     def g_free(p):  # at the stiffness the solve adapted to
         return fm * pot_mod.gradient(solved_potential(p, res), x)
@@ -352,10 +351,20 @@ def _tangent(solver: Newton, adj: ImplicitAdjoint, pot, bc, res: Solution, lstat
     rhs = -(g_dot + fm * system.H(v_dot))
 
     def solve(_, b):  # not differentiated: only linear in b, NaN if it failed
-        y, ok = _solve_ff(solver, lstate, adj, system, b)
+        if follower:
+            y, ok = _nonsymmetric_ff(solver, lstate, adj, system, b, transpose=False)
+        else:
+            y, ok = _solve_ff(solver, lstate, adj, system, b)
         return jnp.where(ok, y, jnp.nan)
 
-    y = lax.custom_linear_solve(system.A, rhs, solve, symmetric=True)
+    def transpose_solve(_, b):  # (a follower load's J_ffᵀ, for reverse over forward)
+        y, ok = _nonsymmetric_ff(solver, lstate, adj, system, b, transpose=True)
+        return jnp.where(ok, y, jnp.nan)
+
+    if follower:
+        y = lax.custom_linear_solve(system.A, rhs, solve, transpose_solve=transpose_solve)
+    else:
+        y = lax.custom_linear_solve(system.A, rhs, solve, symmetric=True)
     # multiplying by 1 or NaN keeps the tangent linear (and so transposable)
     scale = jnp.where(res.status == Status.SUCCESS, 1.0, jnp.nan).astype(x.dtype)
     return scale * (fm * y + v_dot)

@@ -83,6 +83,8 @@ class Solution(NamedTuple):
             ``linear_history`` ``(max_steps,)``, ``step_history`` ``(max_steps,)``
             (accepted step lengths, NaN-padded), ``line_search_cutbacks``,
             ``negative_curvature`` (Newton steps whose linear solve met it),
+            ``linear_unconverged`` (Newton steps whose linear solve stopped short of its
+            tolerance, e.g. a GMRES at its iteration cap: the step was its best iterate),
             ``projected`` (steps whose host matrix was PSD-projected),
             ``residual_floor`` (the round-off floor of the residual at the last iterate
             [force]: a residual at or below it counts as converged),

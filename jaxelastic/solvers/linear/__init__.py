@@ -1,7 +1,8 @@
 """Linear solvers of the Newton system: settings, explicit state, one ``auto`` table.
 
-``protocol`` (:class:`LinearSolver`, :class:`LinearState`) → ``system`` (the Newton
-operator) → ``krylov`` (the one device CG, :class:`CG`) → ``host`` (:class:`Direct`,
+``gmres`` (the one GMRES loop, for non-symmetric operators) → ``protocol``
+(:class:`LinearSolver`, :class:`LinearState`) → ``system`` (the Newton operator) →
+``krylov`` (the one device CG, :class:`CG`) → ``host`` (:class:`Direct`,
 :class:`AMG`) and ``multilevel`` (:class:`Multilevel`) → ``auto`` (what ``"auto"`` picks)
 → ``selection`` (:func:`resolve`, :func:`init_linear`).
 """
@@ -11,6 +12,7 @@ from .auto import AUTO_DIRECT_MAX_DOFS_P2 as AUTO_DIRECT_MAX_DOFS_P2
 from .auto import AUTO_DIRECT_MAX_DOFS_QUADRATIC as AUTO_DIRECT_MAX_DOFS_QUADRATIC
 from .auto import LINEAR_SOLVERS as LINEAR_SOLVERS
 from .auto import choose as choose
+from .gmres import gmres as gmres
 from .host import AMG as AMG
 from .host import Direct as Direct
 from .host import HostSolver as HostSolver
@@ -37,6 +39,7 @@ __all__ = [
     "choose",
     "CG",
     "cg",
+    "gmres",
     "block_jacobi",
     "jacobi",
     "AMG",

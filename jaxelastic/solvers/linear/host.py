@@ -175,6 +175,13 @@ class HostSolver(LinearSolver):
         """``(dx, iterations, status)`` with the host factorisation of ``Ke``."""
         raise NotImplementedError
 
+    def symmetric_preconditioner(self, state, system: NewtonSystem, Ke, token):
+        """The host factorisation (direct: an exact solve, pivoted where the matrix is
+        indefinite) or AMG hierarchy (one V-cycle) of the assembled ``Ke``."""
+        backend = _backend(state)
+        token = _host_factor(backend, Ke, mass_or_zeros(system), token)
+        return _host_preconditioner(backend, system.free, token), token
+
     def newton_step(self, state, system: NewtonSystem, A, Ke, rhs, tol, token) -> Solution:
         """Factorise ``Ke`` on the host and solve (status NOT_POSITIVE_DEFINITE when the
         assembled matrix is not positive definite)."""

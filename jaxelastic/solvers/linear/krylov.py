@@ -166,6 +166,10 @@ class CG(LinearSolver):
             return jacobi(blocks, system.free)
         return block_jacobi(blocks, system.free, lapack=not is_sharded(system.pot.mesh))
 
+    def symmetric_preconditioner(self, state, system: NewtonSystem, Ke, token):
+        """The (block-)Jacobi preconditioner of ``Ke``'s node blocks (None for ``"none"``)."""
+        return self._M(system, Ke, self.preconditioner), token
+
     def newton_step(self, state, system: NewtonSystem, A, Ke, rhs, tol, token) -> Solution:
         """Inexact solve of the Newton system to ``‖r‖ ≤ tol``."""
         return cg(A, rhs, self._M(system, Ke, self.preconditioner), tol=tol, max_iter=self.max_iter)

@@ -156,6 +156,12 @@ class Multilevel(LinearSolver):
 
         return apply
 
+    def symmetric_preconditioner(self, state, system: NewtonSystem, Ke, token):
+        """One multigrid cycle of the level operators built from ``Ke``."""
+        if Ke is None:
+            raise ValueError("Multilevel needs the element Hessians (NewtonSystem.Ke)")
+        return self._M(state, system, Ke), token
+
     def newton_step(self, state, system: NewtonSystem, A, Ke, rhs, tol, token) -> Solution:
         """Multigrid-preconditioned CG to ``‖r‖ ≤ tol`` (the level operators from ``Ke``)."""
         if Ke is None:

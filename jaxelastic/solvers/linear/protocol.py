@@ -13,19 +13,28 @@ more than a few factorisations alive.
 A Newton step calls :meth:`LinearSolver.newton_step` (inside a trace) or, for host solvers
 outside ``jit`` on an assembled operator, :meth:`LinearSolver.host_step`; the projected
 retry around either is the Newton driver's (:mod:`~jaxelastic.solvers.newton.retry`).
+A non-symmetric Newton operator (the true tangent of a follower load) is solved by
+:meth:`LinearSolver.nonsymmetric_step`: GMRES (:func:`~.gmres.gmres`) preconditioned by
+what the solver builds for the symmetric part (:meth:`LinearSolver.symmetric_preconditioner`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import jax
 
 from ..results import Solution
+from .gmres import gmres
 from .system import NewtonSystem
 
-__all__ = ["LinearSolver", "LinearState"]
+__all__ = ["LinearSolver", "LinearState", "NONSYMMETRIC_MAX_ITER"]
+
+NONSYMMETRIC_MAX_ITER = 2000
+"""GMRES iteration cap of :meth:`LinearSolver.nonsymmetric_step` for solvers without a
+``max_iter`` of their own (:class:`~jaxelastic.solvers.linear.Direct`)."""
 
 
 @jax.tree_util.register_dataclass
@@ -78,6 +87,27 @@ class LinearSolver:
         MAX_STEPS, NEGATIVE_CURVATURE or NOT_POSITIVE_DEFINITE; stats ``iterations``,
         ``residual``."""
         raise NotImplementedError
+
+    def symmetric_preconditioner(
+        self, state: LinearState, system: NewtonSystem, Ke, token
+    ) -> tuple[Callable | None, jax.Array]:
+        """``(M, token)``: ``r ↦ M⁻¹ r`` built from the symmetric element Hessians ``Ke``
+        (what the solver's symmetric solve is preconditioned or factorised with; None:
+        none), zero on the Dirichlet dofs, and the token that orders later host calls.
+        Traceable."""
+        raise NotImplementedError(f"{type(self).__name__} has no preconditioner")
+
+    def nonsymmetric_step(
+        self, state: LinearState, system: NewtonSystem, A, Ke, rhs, tol, token
+    ) -> Solution:
+        """Solve a non-symmetric ``A Δ = rhs`` to ``‖r‖ ≤ tol`` by GMRES preconditioned by
+        :meth:`symmetric_preconditioner` of the symmetric element Hessians ``Ke`` (a host
+        factorisation of the symmetric part is an exact inverse of it, indefinite or not).
+        Traceable. Status SUCCESS, MAX_STEPS (GMRES did not reach ``tol``: reported, the
+        step is the best iterate) or NONFINITE; stats ``iterations``, ``residual``."""
+        M, _ = self.symmetric_preconditioner(state, system, Ke, token)
+        max_iter = int(getattr(self, "max_iter", NONSYMMETRIC_MAX_ITER))
+        return gmres(A, rhs, M, tol=tol, max_iter=max_iter)
 
     def exact(self, state: LinearState, system: NewtonSystem, b, rtol, max_iter: int) -> Solution:
         """Solve with the exact operator to ``‖r‖ ≤ rtol·‖b‖`` (adjoint/tangent systems)."""

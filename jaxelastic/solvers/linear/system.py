@@ -22,6 +22,7 @@ __all__ = [
     "newton_system",
     "exact_system",
     "operator_is_assembled",
+    "is_nonsymmetric",
     "mass_or_zeros",
 ]
 
@@ -41,6 +42,10 @@ class NewtonSystem(NamedTuple):
             element Hessians (plus the mass diagonal, Dirichlet rows and columns replaced by
             identity): no matrix-free Hessian, no self-contact coupling. Host back ends
             may then run the whole Krylov loop on the host.
+        symmetric: ``H`` is symmetric. False for the true tangent of a follower load
+            (``Ke`` then holds the symmetric part only, ``H`` adds the skew part
+            :meth:`~jaxelastic.mechanics.pressure.Pressure.skew_vp`): solved by GMRES
+            (:meth:`~jaxelastic.solvers.linear.LinearSolver.nonsymmetric_step`).
     """
 
     pot: Potential
@@ -51,6 +56,7 @@ class NewtonSystem(NamedTuple):
     A: Callable
     operator: Callable
     assembled: bool = False
+    symmetric: bool = True
 
 
 def _masked(fm: jax.Array, H: Callable) -> Callable:
@@ -68,8 +74,32 @@ def operator_is_assembled(hessian: str, pot: Potential) -> bool:
     return hessian != "hvp" and not pot_mod.has_coupling(pot)
 
 
+def _with_skew(pot: Potential, x, H: Callable) -> Callable:
+    """``v ↦ H v + ½(J − Jᵀ) v`` with the pressure term's skew part (the true tangent)."""
+    term = pot.pressure
+    assert term is not None
+
+    def J(v):
+        return H(v) + term.skew_vp(x, v)
+
+    return J
+
+
+def is_nonsymmetric(pot: Potential) -> bool:
+    """Whether the true tangent of ``pot`` is not symmetric (a follower pressure; static)."""
+    return pot.pressure is not None and pot.pressure.follower
+
+
 def newton_system(
-    pot: Potential, x, free, *, hessian: str, need_Ke: bool, Ke=None, pair_h=None
+    pot: Potential,
+    x,
+    free,
+    *,
+    hessian: str,
+    need_Ke: bool,
+    Ke=None,
+    pair_h=None,
+    exact_tangent: bool = False,
 ) -> NewtonSystem:
     """The Dirichlet-masked Newton operator at ``x`` ``(n_nodes, dim)``.
 
@@ -80,6 +110,9 @@ def newton_system(
         Ke: element Hessians already computed at ``x`` (else computed here if needed).
         pair_h: coupling data of the potential's terms at ``x`` if already computed
             (:func:`~jaxelastic.potential.coupling_data`).
+        exact_tangent: the operator is the true, non-symmetric tangent where the
+            potential has a follower load (:func:`is_nonsymmetric`); else (and always for
+            conservative potentials) the symmetric Hessian. ``Ke`` stays symmetric.
     """
     fm = free.astype(x.dtype)
     if pair_h is None:  # once, for Ke's blocks and the coupling
@@ -96,8 +129,11 @@ def newton_system(
         Kv = pot_mod.element_hessian_vp(pot, K, v)
         return Kv if cpl is None else Kv + cpl(v)
 
-    def operator(K):
+    def sym_operator(K):
         return _masked(fm, lambda v: KV(K, v))
+
+    def true_operator(K):
+        return _masked(fm, _with_skew(pot, x, lambda v: KV(K, v)))
 
     if hessian == "hvp":
 
@@ -111,6 +147,10 @@ def newton_system(
             return KV(Ke_el, v)
 
     assembled = operator_is_assembled(hessian, pot)
+    symmetric = not (exact_tangent and is_nonsymmetric(pot))
+    if not symmetric:  # the true tangent: not the assembled (symmetric) element matrix
+        H = _with_skew(pot, x, H)
+        assembled = False
     return NewtonSystem(
         pot=pot,
         x=x,
@@ -118,15 +158,18 @@ def newton_system(
         Ke=Ke,
         H=H,
         A=_masked(fm, H),
-        operator=operator,
+        operator=sym_operator if symmetric else true_operator,
         assembled=assembled,
+        symmetric=symmetric,
     )
 
 
-def exact_system(pot: Potential, x, mask) -> NewtonSystem:
+def exact_system(pot: Potential, x, mask, *, exact_tangent: bool = False) -> NewtonSystem:
     """The exact Hessian at ``x``: element Hessians + lumped mass, exact contact blocks
     (through the HVP if there is stiffness damping): the operator of the adjoint and
-    tangent solves of implicit differentiation."""
+    tangent solves of implicit differentiation. ``exact_tangent``: with a follower load
+    (:func:`is_nonsymmetric`) ``H`` is the true, non-symmetric tangent (``Ke`` its
+    symmetric part)."""
     free = ~mask
     fm = free.astype(x.dtype)
     Ke = pot_mod.elastic_element_hessians(pot, x, project=False, exact_contact=True)
@@ -148,7 +191,19 @@ def exact_system(pot: Potential, x, mask) -> NewtonSystem:
         def H(v):
             return KV(Ke, v)
 
-    return NewtonSystem(pot=pot, x=x, free=free, Ke=Ke, H=H, A=_masked(fm, H), operator=operator)
+    symmetric = not (exact_tangent and is_nonsymmetric(pot))
+    if not symmetric:
+        H = _with_skew(pot, x, H)
+    return NewtonSystem(
+        pot=pot,
+        x=x,
+        free=free,
+        Ke=Ke,
+        H=H,
+        A=_masked(fm, H),
+        operator=operator,
+        symmetric=symmetric,
+    )
 
 
 def mass_or_zeros(system: NewtonSystem) -> jax.Array:

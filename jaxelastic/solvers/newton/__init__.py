@@ -9,6 +9,9 @@ Each iteration:
 2. The linear system is solved inexactly (forcing term ``η = clip(‖g‖/‖g‖_ref, 1e-6, 0.1)``)
    by the linear solver (:mod:`~jaxelastic.solvers.linear`) on the exact Hessian (element
    Hessians or HVP), or on PSD-projected element Hessians (``hessian="projected"``); a
+   follower load's true, non-symmetric tangent (``tangent="auto"``,
+   :func:`~jaxelastic.solvers.newton.iteration.exact_tangent`) by GMRES preconditioned by
+   the linear solver's preconditioner or factorisation of the symmetric part; a
    solve that finds the Hessian indefinite is retried once on projected element Hessians
    (:mod:`~jaxelastic.solvers.newton.retry`). Where plain Newton misbehaves (a failed
    line search, or no new smallest residual for several iterations) the Hessian is
@@ -44,8 +47,10 @@ Each iteration:
 from .driver import minimize as minimize
 from .driver import runs_on_host as runs_on_host
 from .driver import step as step
+from .iteration import exact_tangent as exact_tangent
 from .iteration import is_quadratic as is_quadratic
 from .settings import HESSIANS as HESSIANS
+from .settings import TANGENTS as TANGENTS
 from .settings import XTOL_MAX as XTOL_MAX
 from .settings import Newton as Newton
 from .state import NewtonState as NewtonState
@@ -58,6 +63,7 @@ __all__ = [
     "Newton",
     "NewtonState",
     "HESSIANS",
+    "TANGENTS",
     "XTOL_MAX",
     "init",
     "step",
@@ -66,5 +72,6 @@ __all__ = [
     "minimize",
     "runs_on_host",
     "is_quadratic",
+    "exact_tangent",
     "solved_potential",
 ]

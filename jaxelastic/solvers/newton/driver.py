@@ -46,6 +46,7 @@ from .iteration import (
     STALL,
     descent,
     energy_scale,
+    exact_tangent,
     is_quadratic,
     line_search,
     near_tol,
@@ -93,7 +94,10 @@ def prepare(s: Newton, pot: Potential, bc: Dirichlet, state: NewtonState, Ke=Non
     x = state.x
     need = s.linear.needs_element_hessians
     sp = _shifted(s, pot, state.lam)
-    system = newton_system(sp, x, ~bc.mask, hessian=s.hessian, need_Ke=need, Ke=Ke, pair_h=pair_h)
+    exact = exact_tangent(s, pot)
+    system = newton_system(
+        sp, x, ~bc.mask, hessian=s.hessian, need_Ke=need, Ke=Ke, pair_h=pair_h, exact_tangent=exact
+    )
     dD = jnp.where(bc.mask, bc.values - x, 0.0)
     rhs, tol, bn = newton_rhs(s, system, state.g, dD, state.ref)
     return Prepared(system, dD, rhs, tol, bn)
@@ -117,9 +121,17 @@ def _retry_enabled(s: Newton, system: NewtonSystem) -> bool:
 
 
 def linear_step(s: Newton, lstate: LinearState, system: NewtonSystem, rhs, tol) -> Solution:
-    """The linear solve of a Newton step inside a trace, with the projected retry."""
+    """The linear solve of a Newton step inside a trace, with the projected retry (a
+    non-symmetric tangent: GMRES on the true operator, without it)."""
     Ke = system.Ke
     elementwise = s.hessian != "hvp"  # system.A is the element-Hessian operator of Ke
+
+    if not system.symmetric:  # GMRES on the true tangent: no projected retry (GMRES
+        # needs no definiteness; the host factorisation of an indefinite symmetric part is
+        # pivoted), a GMRES short of its tolerance says so in its status
+        res = s.linear.nonsymmetric_step(lstate, system, system.A, Ke, rhs, tol, jnp.int32(0))
+        res = with_retry(lambda k, token: res, rhs, traced=True, enabled=False)
+        return res._replace(x=jnp.where(system.free, res.x, 0.0))
 
     def attempt(k, token):
         if not _retry_enabled(s, system):
@@ -192,6 +204,8 @@ def finish(
         st = jnp.where(shift.rescue & (k + 1 >= s.max_steps), Status.MAX_STEPS, st)
     its = lin.stats["iterations"].astype(jnp.int32)
     neg = lin.status == Status.NEGATIVE_CURVATURE
+    # a linear solve that stopped short of its tolerance (the step is its best iterate)
+    short = (lin.status == Status.MAX_STEPS) | (lin.status == Status.NONFINITE)
     new = state._replace(
         x=x_new,
         g=g_new,
@@ -204,6 +218,7 @@ def finish(
         alpha_hist=state.alpha_hist.at[k].set(jnp.where(acc, alpha, jnp.nan)),
         cuts=state.cuts + cuts.astype(jnp.int32),
         neg=state.neg + neg.astype(jnp.int32),
+        short=state.short + short.astype(jnp.int32),
         proj=state.proj + lin.stats["projected"].astype(jnp.int32),
         floor=floor,
         lam=shift.lam if _regularized(s, pot) else state.lam,
@@ -304,7 +319,17 @@ def _system(s: Newton, pot, bc, state: NewtonState, Ke, ph) -> NewtonSystem:
     """The Newton operator from the element Hessians already computed at ``state.x``."""
     need = s.linear.needs_element_hessians
     sp = _shifted(s, pot, state.lam)
-    return newton_system(sp, state.x, ~bc.mask, hessian=s.hessian, need_Ke=need, Ke=Ke, pair_h=ph)
+    exact = exact_tangent(s, pot)
+    return newton_system(
+        sp,
+        state.x,
+        ~bc.mask,
+        hessian=s.hessian,
+        need_Ke=need,
+        Ke=Ke,
+        pair_h=ph,
+        exact_tangent=exact,
+    )
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -370,7 +395,13 @@ trimming every step cost 0.5 s of a 3.2 s run."""
 def _python_loop(s: Newton, lstate, pot: Potential, bc: Dirichlet, x0) -> Solution:
     """The loop in Python over compiled pieces (concrete inputs only)."""
     state, length = _loop_start(s, pot, bc, x0)
-    on_host = bool(s.linear.on_host) and operator_is_assembled(s.hessian, pot)
+    # (the true tangent of a follower load is not the assembled symmetric matrix: its
+    # GMRES runs compiled, the host factorisation of the symmetric part a callback)
+    on_host = (
+        bool(s.linear.on_host)
+        and operator_is_assembled(s.hessian, pot)
+        and not exact_tangent(s, pot)
+    )
     while int(state.status) == RUNNING:
         p = terms.with_states(pot, state.terms)
         Ke, rhs, tol, bn, ph = _loop_prepare(s, pot, bc, state)

@@ -7,9 +7,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Newton", "HESSIANS", "XTOL_MAX"]
+__all__ = ["Newton", "HESSIANS", "TANGENTS", "XTOL_MAX"]
 
 HESSIANS = ("element", "hvp", "projected")
+
+TANGENTS = ("auto", "exact", "symmetric")
+"""Newton's ``tangent`` choices (:func:`~jaxelastic.solvers.newton.iteration.exact_tangent`
+decides ``"auto"``)."""
 
 
 XTOL_MAX = 1e-3
@@ -46,6 +50,16 @@ class Newton:
             cheap matvecs), ``"hvp"`` (exact, matrix-free forward-over-reverse) or
             ``"projected"`` (PSD-projected element Hessians: always a descent direction,
             but only linear convergence where the true Hessian is indefinite).
+        tangent: the Newton operator of a potential with a non-conservative follower load
+            (:attr:`~jaxelastic.mechanics.pressure.Pressure.follower`), whose true tangent
+            is not symmetric: ``"exact"`` (the true tangent, symmetric part plus the skew
+            pressure stiffness as a matrix-free product, solved by GMRES preconditioned by
+            the linear solver's symmetric preconditioner or factorisation: quadratic
+            convergence), ``"symmetric"`` (its symmetric part, solved like any Hessian: a
+            quasi-Newton, linear convergence, cheaper per step) or ``"auto"`` (``"exact"``
+            wherever the tangent is not symmetric:
+            :func:`~jaxelastic.solvers.newton.iteration.exact_tangent`). Conservative
+            potentials have a symmetric tangent, and there the three are the same.
         linear: linear solver: ``"auto"``, ``"cg"``, ``"direct"``, ``"amg"`` or a
             :class:`~jaxelastic.solvers.linear.CG` / ``Direct`` / ``AMG`` object
             (settings only: the state they need, a factorisation or a hierarchy, is made by
@@ -79,6 +93,7 @@ class Newton:
     max_steps: int = 50
     xtol: float = 1e-12
     hessian: str = "element"
+    tangent: str = "auto"
     linear: Any = "auto"
     ls_max: int = 40
     armijo: float = 1e-4
@@ -89,6 +104,8 @@ class Newton:
     def __post_init__(self):
         if self.hessian not in HESSIANS:
             raise ValueError(f"hessian must be one of {HESSIANS}, got {self.hessian!r}")
+        if self.tangent not in TANGENTS:
+            raise ValueError(f"tangent must be one of {TANGENTS}, got {self.tangent!r}")
         for name in ("max_steps", "ls_max"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:

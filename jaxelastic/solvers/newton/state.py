@@ -39,7 +39,9 @@ class NewtonState(NamedTuple):
             right-hand side seen) [force].
         hist: ``(max_steps + 1,)`` free residual norms; lin_hist: ``(max_steps,)`` linear
             iterations; alpha_hist: ``(max_steps,)`` accepted step lengths (NaN: none).
-        cuts: line-search halvings; neg: negative-curvature linear solves; proj: projected
+        cuts: line-search halvings; neg: negative-curvature linear solves; short: linear
+            solves that stopped short of their tolerance (iteration cap, stagnation or a
+            non-finite result: the step was the solver's best iterate); proj: projected
             retries; floor: the residual's round-off floor at the last iterate.
         lam: the Levenberg–Marquardt shift of the next iteration [force/length] (0: plain
             Newton; :mod:`~jaxelastic.solvers.newton.levenberg`); reg: iterations solved
@@ -61,6 +63,7 @@ class NewtonState(NamedTuple):
     alpha_hist: jax.Array
     cuts: jax.Array
     neg: jax.Array
+    short: jax.Array
     proj: jax.Array
     floor: jax.Array
     lam: jax.Array
@@ -97,6 +100,7 @@ def init(s: Newton, pot: Potential, bc: Dirichlet, x0) -> NewtonState:
         alpha_hist=jnp.full((s.max_steps,), jnp.nan, dtype),
         cuts=zero,
         neg=zero,
+        short=zero,
         proj=zero,
         floor=jnp.zeros((), dtype),
         lam=jnp.zeros((), dtype),
@@ -161,6 +165,7 @@ def solution(pot: Potential, state: NewtonState, s: Newton | None = None) -> Sol
         step_history=state.alpha_hist,
         line_search_cutbacks=state.cuts,
         negative_curvature=state.neg,
+        linear_unconverged=state.short,
         projected=state.proj,
         regularized=state.reg,
         residual_floor=state.floor,
