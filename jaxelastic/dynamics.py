@@ -50,6 +50,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.core import Tracer
 
 from .loads import Dirichlet
@@ -501,6 +502,30 @@ def _progress_bar(total: int, progress: bool):
     return _NoBar()
 
 
+def _pressure_schedule(pot: Potential, pressure_at) -> Callable[[float], Potential]:
+    """``t ↦`` the base potential of the step ending at ``t``: ``pot`` itself, or with the
+    pressures ``pressure_at(t)`` (same shapes and dtype: one compiled step for all)."""
+    if pressure_at is None:
+        return lambda t: pot
+    term = pot.pressure
+    if term is None:
+        raise ValueError(
+            "simulate: pressure_at is given but the potential has no pressure term "
+            "(Potential(..., pressure=je.loads.pressure_load(...)))"
+        )
+    if not callable(pressure_at):
+        raise TypeError(f"pressure_at must be a function t -> pressures, got {pressure_at!r}")
+    shape, dtype = term.pressure.shape, term.pressure.dtype
+
+    def at(t: float) -> Potential:
+        p = np.broadcast_to(np.asarray(pressure_at(t), dtype=np.dtype(dtype)), shape)
+        if not np.all(np.isfinite(p)):
+            raise ValueError(f"simulate: pressure_at({t:g}) is not finite: {p}")
+        return pot.replace(pressure=term.replace(pressure=jnp.asarray(p)))
+
+    return at
+
+
 def simulate(
     pot: Potential,
     state: State,
@@ -512,6 +537,7 @@ def simulate(
     callback: Callable[[State, Solution, dict], bool | None] | None = None,
     progress: bool = True,
     throw: bool = True,
+    pressure_at: Callable[[float], Any] | None = None,
 ) -> tuple[State, list[dict]]:
     """The host loop over time steps (one compiled step), with progress bar and records.
 
@@ -526,6 +552,9 @@ def simulate(
         progress: show a tqdm progress bar.
         throw: raise :class:`~jaxelastic.solvers.results.SolveError` on a failed step (else
             stop and return; the last record has the failed status).
+        pressure_at: a Python function ``t ↦`` the pressures ``(n_surfaces,)`` [Pa] of
+            ``pot.pressure`` at time ``t`` (e.g. a ramp; each step uses its end time), or
+            None: the term's own pressures at every step (a step load).
 
     Returns:
         ``(final_state, records)``: one dict per step with ``t``, ``status``,
@@ -537,6 +566,7 @@ def simulate(
     if is_traced(pot, state):
         raise ValueError("simulate is a host loop: call it outside jit (use rollout inside)")
     bc_at = bc if callable(bc) else (lambda t: bc)
+    loads_at = _pressure_schedule(pot, pressure_at)
     solver = prepare_solver(solver, pot.mesh, bc_at(float(state.t) + integ.h))
     records: list[dict] = []
     bar = _progress_bar(int(n_steps), progress)
@@ -550,9 +580,10 @@ def simulate(
             if pot.contact is not None and pot.contact.self_friction is not None:
                 # pair friction is lagged over the candidate pairs: complete them at x_n
                 pot = pot.replace(contact=pot.contact.refreshed(state.x))
-            step_pot, x_start = _prepare_step(pot, state, integ)
+            base = loads_at(t_next)
+            step_pot, x_start = _prepare_step(base, state, integ)
             res = solve(step_pot, bc_at(t_next), x0=x_start, solver=solver, throw=False)
-            new, en = _finish_step(pot, state, res.x, res.status, integ)
+            new, en = _finish_step(base, state, res.x, res.status, integ)
             jax.block_until_ready(new)
             rec = _step_record(t_next, res, en, time.perf_counter() - t0)
             records.append(rec)
