@@ -70,8 +70,9 @@ def test_bad_pressure_scenes_refused_at_build(overrides, message):
             {
                 "integrator": {"type": "dynamic", "h": 0.01, "duration": 0.1},
                 "material.density": 1e3,
+                "pressure.0.ramp_time": -0.1,
             },
-            "[[pressure]] is supported in static scenes",
+            "[pressure][0].ramp_time",
         ),
     ],
 )
@@ -120,3 +121,48 @@ def test_balloon_under_volume_control(tmp_path):
     p = 0.5 * mu * ((4 / lb + lb**-4) - (4 / la + la**-4))
     assert abs(cav["pressure"][-1] - p) / p < 0.01
     assert all(r["multiplier_updates"] >= 1 for r in summary["static"]["load_steps"])
+
+
+def _dynamic_balloon(tmp_path, **pressure):
+    """The shipped balloon as a damped dynamic scene (rubber density, ~30 % of critical
+    damping of its breathing mode)."""
+    from importlib import resources
+
+    data = resources.files("jaxelastic.scene") / "data"
+    d = load_scene("balloon").to_dict()
+    d["mesh"]["file"] = str(data / "balloon.vtu")
+    d["material"]["density"] = 1000.0
+    d["integrator"] = dict(
+        type="dynamic", method="backward_euler", h=0.004, duration=0.4, alpha=60.0,
+        settle=True, settle_tol=1e-6, settle_steps=3, compare_static=True,
+    )  # fmt: skip
+    d["pressure"][0].update(pressure)
+    d["output"]["every"] = 5
+    return load_scene(d)
+
+
+def test_dynamic_balloon_ramps_its_pressure_and_settles_at_the_static_inflation(tmp_path):
+    from jaxelastic.scene import run_scene
+
+    s = run_scene(_dynamic_balloon(tmp_path, ramp_time=0.05), tmp_path / "out", progress=False)
+    assert s["status"] == "ok" and s["dynamic"]["settled"]
+    cav = s["cavities"]["inside"]
+    t, p, V = (np.asarray(cav[k]) for k in ("time", "pressure", "volume"))
+    assert t[0] == 0.0 and np.all(np.diff(t) > 0)
+    assert p[0] == 0.0 and p[-1] == 5.0e4  # ramped from 0 to the full pressure
+    i = int(np.searchsorted(t, 0.02))
+    assert p[i] == pytest.approx(5.0e4 * t[i] / 0.05)
+    assert V[-1] > 1.5 * cav["rest_volume"]  # inflated (the static solution: la ~ 1.2)
+    # settled at the static inflation of the same pressure
+    assert s["comparison"]["relative_to_max_displacement"] < 1e-3
+    assert (tmp_path / "out" / "pressure_volume.png").stat().st_size > 5_000
+
+
+def test_pressure_ramps_and_volume_control_in_the_wrong_integrator_are_refused(tmp_path):
+    with pytest.raises(SceneError, match=r"\[pressure\]\[0\].ramp_time is only valid in a dynamic"):
+        load_scene("balloon", overrides={"pressure.0.ramp_time": 0.1})
+    d = _dynamic_balloon(tmp_path).to_dict()
+    del d["pressure"]
+    d["cavity"][0]["volume"] = 1e-3
+    with pytest.raises(SceneError, match="volume control is supported in static scenes"):
+        load_scene(d)

@@ -16,6 +16,7 @@ import os
 from collections.abc import Callable
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -29,6 +30,8 @@ from .load import Scene
 __all__ = [
     "Cavities",
     "build_pressure",
+    "pressure_schedule",
+    "cavity_pressures",
     "cavity_report",
     "pressure_volume_figure",
     "volume_controlled_solve",
@@ -200,27 +203,64 @@ def volume_controlled_solve(built, steps: int, on_increment: Callable):
     return sol.x, stats, sol
 
 
-def cavity_report(cav: Cavities, steps: list) -> dict:
-    """``{name: {load_factor, pressure, volume, rest_volume}}`` over the load steps.
+def pressure_schedule(scene: Scene) -> Callable[[float], np.ndarray] | None:
+    """Dynamics: ``t ↦`` the pressures ``(n_pressures,)`` [Pa] of the ``[[pressure]]``
+    entries at time ``t`` [s], in the order of the scene's pressure term (each grows
+    linearly until its ``ramp_time``, or acts in full from t = 0); None when no entry has
+    a ramp (the term's own pressures at every step, a step load)."""
+    entries = scene.spec.pressure
+    if not any(p.ramp_time is not None for p in entries):
+        return None
+    full = np.array([p.pressure for p in entries], np.float64)
+    ramps = [p.ramp_time for p in entries]
+
+    def at(t: float) -> np.ndarray:
+        return full * np.array([1.0 if r is None else min(max(t, 0.0) / r, 1.0) for r in ramps])
+
+    return at
+
+
+def cavity_pressures(scene: Scene, cav: Cavities, entries: np.ndarray) -> np.ndarray:
+    """``(n_cavities,)`` each cavity's pressure [Pa]: the sum of the pressures
+    ``entries`` ``(n_pressures,)`` of the ``[[pressure]]`` entries that name it."""
+    q = np.zeros(len(cav.names))
+    for i, p in enumerate(scene.spec.pressure):
+        if p.cavity is not None:
+            q[cav.names.index(p.cavity)] += float(entries[i])
+    return q
+
+
+@jax.jit
+def _volumes(term: Pressure, x):
+    return term.volumes(x)
+
+
+def cavity_report(cav: Cavities, steps: list, variable: str = "load_factor") -> dict:
+    """``{name: {<variable>, pressure, volume, rest_volume}}`` over the load steps (or, in
+    dynamics with ``variable="time"``, over the output frames).
 
     Args:
-        steps: ``(load factor s, positions (n_nodes, dim), pressures or None)`` of the rest
-            state and of every converged increment (None: the pressure at ``s`` is ``s``
-            times the full one; volume control passes the pressures it found).
+        steps: ``(load factor s or time t, positions (n_nodes, dim), pressures or None)``
+            of the rest state and of every converged increment or frame (None: the
+            pressure at ``s`` is ``s`` times the full one; volume control and dynamics pass
+            the pressures, one per cavity).
+        variable: the name of the first entry of each step in the report.
     """
-    vols = np.stack([np.asarray(cav.term.volumes(jnp.asarray(x)), np.float64) for _, x, _ in steps])
+    vols = np.stack(
+        [np.asarray(_volumes(cav.term, jnp.asarray(x)), np.float64) for _, x, _ in steps]
+    )
     s = [float(si) for si, _, _ in steps]
     ps = [
         [si * float(p) for p in cav.pressure] if q is None else [float(v) for v in q]
         for si, _, q in steps
     ]
     return {
-        n: dict(
-            load_factor=s,
-            pressure=[p[k] for p in ps],
-            volume=vols[:, k].tolist(),
-            rest_volume=float(vols[0, k]),
-        )
+        n: {
+            variable: s,
+            "pressure": [p[k] for p in ps],
+            "volume": vols[:, k].tolist(),
+            "rest_volume": float(vols[0, k]),
+        }
         for k, n in enumerate(cav.names)
     }
 

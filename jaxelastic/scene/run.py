@@ -25,7 +25,13 @@ from ..loads import Dirichlet
 from ..parallel.distributed import host_array
 from ..solvers import Solution, SolveError, SolveWarning, solve_incremental
 from . import interrupt, memory
-from .cavity import cavity_report, pressure_volume_figure, volume_controlled_solve
+from .cavity import (
+    cavity_pressures,
+    cavity_report,
+    pressure_schedule,
+    pressure_volume_figure,
+    volume_controlled_solve,
+)
 from .contact import contact_report, min_gap
 from .interrupt import Interrupted
 from .load import load_scene
@@ -318,6 +324,8 @@ class _Monitor:
         self.settled_at: float | None = None
         self.t_out = 0.0
         self.min_gap = math.inf  # contact: the smallest node–obstacle distance of any step
+        # [[cavity]]: the states of the output frames, for the volumes after the run
+        self.frames = [(0.0, np.asarray(built.x0))] if built.cavities is not None else None
 
     def write(self, t: float, state) -> None:
         assert self.writer is not None  # called only when there is a writer
@@ -345,6 +353,8 @@ class _Monitor:
         last = self.n % self.every == 0 or done or stop or self.n == self.n_steps
         if self.writer is not None and last:
             self.write(record["t"], state)
+        if self.frames is not None and last:
+            self.frames.append((float(record["t"]), np.asarray(state.x)))
         if done:
             self.settled_at = record["t"]
         return done or stop
@@ -384,6 +394,7 @@ def _simulate(built: Built, out: str, progress: bool, summary: dict):
             solver=built.solver,
             callback=callback,
             progress=progress,
+            pressure_at=pressure_schedule(built.scene),  # [[pressure]] ramp_time
         )
     except SolveError as e:
         failure = e
@@ -497,6 +508,11 @@ def _compare_static(built: Built, out: str, progress: bool, mon: _Monitor, summa
     t0 = time.perf_counter()
     assert built.integrator is not None  # a dynamic scene
     base = built.potential if built.shard is None else built.shard.potential
+    schedule = pressure_schedule(built.scene)
+    if schedule is not None:  # the pressures the body carried at the end
+        assert base.pressure is not None  # a scene with [[pressure]] entries
+        p_end = jnp.asarray(schedule(t_end), base.pressure.pressure.dtype)
+        base = base.replace(pressure=base.pressure.replace(pressure=p_end))
     pot = dynamics.static_potential(base, built.integrator)  # the steps' compile
     x_static, stats, _ = static_solve(built, bc=bc, what="static comparison solve", pot=pot)
     summary["timings"]["static_solve_incl_compile"] = time.perf_counter() - t0
@@ -526,6 +542,19 @@ def _compare_static(built: Built, out: str, progress: bool, mon: _Monitor, summa
     return x_static
 
 
+def _dynamic_cavities(built: Built, frames: list) -> dict:
+    """The cavity report of a dynamic scene over its output frames ``(t, x)``: the time,
+    each cavity's pressure (its ``[[pressure]]`` entries at that time) and volume."""
+    cav, schedule = built.cavities, pressure_schedule(built.scene)
+    assert cav is not None  # a scene with [[cavity]]
+    full = np.array([p.pressure for p in built.scene.spec.pressure], np.float64)
+    steps = []
+    for t, x in frames:
+        entries = full if schedule is None else schedule(t)
+        steps.append((t, x, cavity_pressures(built.scene, cav, entries)))
+    return cavity_report(cav, steps, variable="time")
+
+
 def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
     mon, failure, stopped = _simulate(built, out, progress, summary)
     with interrupt.shield():
@@ -534,6 +563,8 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
         if built.potential.contact is not None and mon.n:
             pot, x, t = built.potential, mon.state.x, mon.state.t
             summary["contact"] = contact_report(pot, x, t, mon.min_gap)
+        if mon.frames is not None:  # [[cavity]]: volumes and pressures per output frame
+            summary["cavities"] = _dynamic_cavities(built, mon.frames)
     if stopped is not None:
         summary["timings"]["outputs"] = mon.t_out
         raise stopped
@@ -546,6 +577,10 @@ def _run_dynamic(built: Built, out: str, progress: bool, summary: dict) -> None:
         interrupt.check("after the time steps")
         t0 = time.perf_counter()
         paths = dynamic_figures(built, out, per, mon.tip_u, mon.state.x, x_static)
+        if "cavities" in summary:
+            paths.append(
+                pressure_volume_figure(summary["cavities"], out, built.scene.name, save_png)
+            )
         summary["outputs"]["png"] += paths
         mon.t_out += time.perf_counter() - t0
     summary["timings"]["outputs"] = mon.t_out

@@ -767,7 +767,8 @@ class GravitySpec(Table):
 
 class PressureSpec(Table):
     """A pressure on the deformed boundary facets of a cavity (a follower load, ramped by
-    ``[integrator].load_steps``); conservative for a closed cavity or one whose rim is fixed
+    ``[integrator].load_steps`` in statics; in dynamics acting in full from t = 0 unless
+    ``ramp_time`` ramps it); conservative for a closed cavity or one whose rim is fixed
     or slides on a symmetry plane through ``origin`` (checked before the solve)."""
 
     facets: Selector = Field(description="the loaded boundary facets (same selectors as nodes)")
@@ -790,11 +791,16 @@ class PressureSpec(Table):
         description="an open surface whose rim moves: the exact follower load without a "
         "potential (Newton with its non-symmetric tangent; see the pressure guide)",
     )
+    ramp_time: Positive | None = Field(
+        default=None,
+        description="dynamics: the pressure grows linearly from 0 until this time [s] "
+        "(default: the full pressure from t = 0, a step load)",
+    )
 
 
 class CavitySpec(Table):
-    """A cavity whose volume (area in 2D) is reported per load step in summary.json, with a
-    pressure–volume plot."""
+    """A cavity whose volume (area in 2D) is reported per load step (dynamics: per output
+    frame) in summary.json, with a pressure–volume plot."""
 
     name: Str = Field(description="the cavity's name (summary.json, [[pressure]].cavity)")
     facets: Selector = Field(description="the boundary facets that bound the cavity")
@@ -1493,8 +1499,14 @@ class SceneSpec(Table):
                 "unknown); a scene with volume control has no [[pressure]] entries"
             )
         which = "[[pressure]]" if self.pressure else "[[cavity]]"
-        if (self.pressure or self.cavity) and not self.static:
-            return f"{which} is supported in static scenes ([integrator].type = 'static')"
+        if controlled and not self.static:
+            return (
+                f"[cavity] {controlled[0]!r} has a volume: volume control is supported in "
+                "static scenes ([integrator].type = 'static')"
+            )
+        for i, p in enumerate(self.pressure):
+            if p.ramp_time is not None and self.static:
+                return f"[pressure][{i}].ramp_time is only valid in a dynamic scene"
         if (self.pressure or self.cavity) and self.solver.devices > 1:
             return f"{which} runs on one device ([solver].devices = 1)"
         return None
