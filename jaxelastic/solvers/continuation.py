@@ -2,8 +2,10 @@
 
 For loads too large for one Newton solve (buckling-prone, strongly nonlinear, or a boundary
 motion that would tangle the mesh in one step), the load factor ``s`` goes from 0 to 1;
-at each trial ``s`` the potential's external forces are ``s·f_ext`` (pressures ``s·p``)
-and the Dirichlet data ``path(s)`` (default: the prescribed displacement scaled by ``s``).
+at each trial ``s`` the potential's external forces are ``s·f_ext`` (pressures ``s·p``),
+the Dirichlet data ``path(s)`` (default: the prescribed displacement scaled by ``s``) and,
+when given, the material parameters ``params_path(s)`` (e.g. an active fibre tension
+``s·T_a``: :meth:`~jaxelastic.materials.ActiveTension.scaled`).
 A failed solve halves the increment (from the last converged state); a success grows it
 again (×1.5, at most the initial increment). Every increment is one
 :func:`~jaxelastic.solvers.equilibrium.solve`; all share one compilation (only array values
@@ -66,6 +68,7 @@ def solve_incremental(
     path: Callable[[float], Dirichlet] | None = None,
     throw: bool = True,
     callback: Callable[[float, Solution], None] | None = None,
+    params_path: Callable[[float], object] | None = None,
 ) -> Solution:
     """Solve the static problem at load factor 1 by increments with automatic cut-back.
 
@@ -81,6 +84,9 @@ def solve_incremental(
             rotation by ``s·θ`` instead of a scaled displacement.
         throw: raise :class:`~jaxelastic.solvers.results.SolveError` when it fails.
         callback: called with ``(s, solution)`` after every converged increment.
+        params_path: optional ``s ↦`` material parameters (the same pytree structure and
+            shapes as ``pot.params`` at every ``s``: one compilation); default
+            ``pot.params`` throughout.
 
     Returns:
         The :class:`~jaxelastic.solvers.results.Solution` of the last solve tried, with
@@ -107,6 +113,8 @@ def solve_incremental(
         p = pot if f_full is None else pot.replace(f_ext=s_try * f_full)
         if pot.pressure is not None:  # pressures ramped like the forces
             p = p.replace(pressure=pot.pressure.scaled(s_try))
+        if params_path is not None:
+            p = p.replace(params=params_path(s_try))
         x_start = x
         if pot.contact is not None:  # obstacles at time s_try, friction lagged at x (time s)
             c = pot.contact.at_time(s)
