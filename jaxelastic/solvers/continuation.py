@@ -57,6 +57,15 @@ def _record(s: float, res: Solution) -> dict:
     )
 
 
+def _at_load_factor(pot: Potential, f_full, s: float, params_path) -> Potential:
+    """``pot`` at load factor ``s``: forces and pressures scaled (and the parameters of
+    ``params_path``, when given)."""
+    p = pot if f_full is None else pot.replace(f_ext=s * f_full)
+    if pot.pressure is not None:  # pressures ramped like the forces
+        p = p.replace(pressure=pot.pressure.scaled(s))
+    return p if params_path is None else p.replace(params=params_path(s))
+
+
 def solve_incremental(
     pot: Potential,
     bc: Dirichlet,
@@ -110,11 +119,7 @@ def solve_incremental(
     t0 = time.perf_counter()
     while s < 1.0:
         s_try = min(1.0, s + ds)
-        p = pot if f_full is None else pot.replace(f_ext=s_try * f_full)
-        if pot.pressure is not None:  # pressures ramped like the forces
-            p = p.replace(pressure=pot.pressure.scaled(s_try))
-        if params_path is not None:
-            p = p.replace(params=params_path(s_try))
+        p = _at_load_factor(pot, f_full, s_try, params_path)
         x_start = x
         if pot.contact is not None:  # obstacles at time s_try, friction lagged at x (time s)
             c = pot.contact.at_time(s)
