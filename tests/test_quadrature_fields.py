@@ -269,6 +269,18 @@ def test_ventricle_active_scene_refuses_bad_values(overrides, match):
         load_scene("ventricle_active", overrides=overrides)
 
 
+def test_active_tension_is_refused_in_a_fit_and_with_a_prescribed_volume():
+    base = {"plane": {"axis": "z", "value": 0.005}}
+    obs = {"kind": "reaction", "file": "fit_plate_hole_force.csv", "sigma": 1.0}
+    obs |= {"nodes": base, "direction": [0.0, 0.0, 1.0]}
+    fit = {"fit": {"fields": ["C"], "case": [{"load_factors": [1.0], "observation": [obs]}]}}
+    with pytest.raises(SceneError, match="leave active_tension out of a .fit. scene"):
+        load_scene("ventricle_active", overrides=fit)
+    volume = {"pressure": [], "cavity.0.volume": 1.2e-6}
+    with pytest.raises(SceneError, match="prescribed volume"):
+        build(load_scene("ventricle_active", overrides=volume))
+
+
 def test_active_tension_is_a_guccione_key():
     with pytest.raises(SceneError, match="active_tension is a key of 'guccione'"):
         load_scene("default", overrides={"material.active_tension": 1.0})

@@ -1415,6 +1415,11 @@ class SceneSpec(Table):
         """An unknown ``[fit].fields`` name or a missing initial value, or None."""
         fit, model = self.fit, self.material.model
         assert fit is not None
+        if self.material.active_tension is not None:
+            return (
+                "[fit] with [material].active_tension: a fit identifies passive constants; "
+                "leave active_tension out of a [fit] scene"
+            )
         valid = fit_parameters(model)
         if model in FAMILIES and not fit.measured:
             return (
