@@ -24,6 +24,7 @@ from .loads import Dirichlet, facet_integrals
 from .mechanics.checks import cell_params_axes, check_positions, check_psi, psi_name
 from .mechanics.kernels import first_piola, forces
 from .mechanics.kinematics import deformation_gradients, det, green_strain
+from .mechanics.quadrature_fields import first_point_params, over_quadrature
 from .mesh import Mesh, facet_owners
 from .mesh.elements import ref_nodes
 
@@ -52,12 +53,11 @@ def _plane_strain_parts(psi, F, J, params, ax):
     """σ_zz ``(c, q)`` of the 3D embedding and, per cell, the relative mismatch of the
     in-plane P of ψ on 3×3 F against ψ on 2×2 F at a fixed probe F (0 when ψ on 2×2 F
     is the plane-strain restriction of ψ on 3×3 F)."""
-    P3 = jax.vmap(jax.vmap(first_piola(psi), in_axes=(0, None)), in_axes=(0, ax))(
-        _embed3(F), params
-    )
+    P3 = jax.vmap(over_quadrature(first_piola(psi)), in_axes=(0, ax))(_embed3(F), params)
     szz = P3[..., 2, 2] / J  # σ = P Fᵀ / J and row z of diag(F, 1) is e_z
     Fp = jnp.asarray(_PROBE, F.dtype)
     c = J.shape[0]
+    params = first_point_params(params)  # the probe: one point per cell
     P2p = jax.vmap(lambda p: first_piola(psi)(Fp, p), in_axes=(ax,), axis_size=c)(params)
     P3p = jax.vmap(lambda p: first_piola(psi)(_embed3(Fp), p), in_axes=(ax,), axis_size=c)(params)
     diff = jnp.max(jnp.abs(P3p[:, :2, :2] - P2p), axis=(-2, -1))
@@ -121,8 +121,8 @@ def _cell_fields(psi, x, mesh, params, embed: bool):
     F = deformation_gradients(x, mesh)  # (c, q, d, d); F̄ under the F-bar formulation
     c, q, d = F.shape[:3]
     ax = cell_params_axes(params, mesh.n_cells)
-    P = jax.vmap(jax.vmap(first_piola(psi), in_axes=(0, None)), in_axes=(0, ax))(F, params)
-    W = jax.vmap(jax.vmap(psi, in_axes=(0, None)), in_axes=(0, ax))(F, params)  # (c, q)
+    P = jax.vmap(over_quadrature(first_piola(psi)), in_axes=(0, ax))(F, params)
+    W = jax.vmap(over_quadrature(psi), in_axes=(0, ax))(F, params)  # (c, q)
     J = jax.vmap(jax.vmap(det))(F)
     sigma = P @ jnp.swapaxes(F, -1, -2) / J[..., None, None]  # Cauchy σ = P Fᵀ / J
     s3 = jnp.zeros((c, q, 3, 3), F.dtype).at[..., :d, :d].set(sigma)  # σ_zz = 0 for now
@@ -333,6 +333,6 @@ def _tractions(psi, x, mesh, params, cidx, N):
     w = mesh.weights[cidx]  # (m, q)
     ax = jax.tree_util.tree_map(lambda leaf: None if jnp.ndim(leaf) == 0 else 0, params)
     p = jax.tree_util.tree_map(lambda leaf: leaf if jnp.ndim(leaf) == 0 else leaf[cidx], params)
-    Pq = jax.vmap(jax.vmap(first_piola(psi), in_axes=(0, None)), in_axes=(0, ax))(F, p)
+    Pq = jax.vmap(over_quadrature(first_piola(psi)), in_axes=(0, ax))(F, p)
     P = jnp.einsum("mq,mqij->mij", w, Pq) / jnp.sum(w, axis=1)[:, None, None]
     return jnp.einsum("mij,mj->mi", P, N.astype(P.dtype))

@@ -17,10 +17,11 @@ endocardium radii 7 and 17 mm, epicardium 10 and 20 mm, base plane z = 5 mm), th
 base is fixed, so the pressure is the conservative ``−p V`` of the cavity closed by the
 base plane: ``origin = (0, 0, 5)``). Problem 2: isotropic Guccione, C = 10 kPa,
 b_f = b_t = b_fs = 1, p = 10 kPa. Problem 3: C = 2 kPa, b_f = 8, b_t = 2, b_fs = 4, helix
-fibres from +90° (endocardium) to −90° (epicardium) at the cell centroids
-(:func:`jaxelastic.materials.helix_fibres`), active tension S_a = T_a f0⊗f0 with
-T_a = 60 kPa (:func:`jaxelastic.materials.with_active_tension`), p = 15 kPa. Outputs: the
-deformed z of the endocardial apex (0, 0, −17) and the epicardial apex (0, 0, −20).
+fibres from +90° (endocardium) to −90° (epicardium) at the cell centroids or, with
+``--fibres quadrature``, at the quadrature points (:func:`jaxelastic.materials.helix_basis`),
+active tension S_a = T_a f0⊗f0 with T_a = 60 kPa
+(:func:`jaxelastic.materials.with_active_tension`), p = 15 kPa. Outputs: the deformed z of
+the endocardial apex (0, 0, −17) and the epicardial apex (0, 0, −20).
 Problem 2 is ramped by ``je.solve_incremental``; problem 3 ramps the pressure and T_a
 together in equal increments (one ``je.solve`` each from the last converged state). Mesh
 level n: ``truncated_ellipsoid(4n, 8n, n)``.
@@ -112,7 +113,13 @@ def beam(
 
 
 def ventricle(
-    problem: int, n: int, order: int, formulation: str, kappa: float, steps: int = 5
+    problem: int,
+    n: int,
+    order: int,
+    formulation: str,
+    kappa: float,
+    steps: int = 5,
+    fibres: str = "cells",
 ) -> dict:
     """Problem 2 or 3 on ``truncated_ellipsoid(4n, 8n, n)`` (see the module)."""
     import jax.numpy as jnp
@@ -129,8 +136,7 @@ def ventricle(
     surf = ellipsoid_surfaces(m)
     apex = {"endo": 0, "epi": n * (1 + 32 * n * n)}  # the apex nodes of layers 0 and n
     term = L.pressure_load(m, surf["endocardium"], c["pressure"], origin=[0.0, 0.0, 5.0])
-    corners = np.asarray(m.cells)[:, :4]
-    f0, s0 = M.helix_fibres(np.asarray(m.points)[corners].mean(axis=1))
+    f0, s0 = M.helix_basis(m, at=fibres)
     passive = M.guccione_params(
         C=c["C"], bf=c["bf"], bt=c["bt"], bfs=c["bfs"], kappa=kappa, f0=f0, s0=s0
     )
@@ -166,6 +172,7 @@ def ventricle(
         "order": order,
         "formulation": formulation,
         "kappa": kappa,
+        "fibres": fibres,
         "n_nodes": int(m.n_nodes),
         "n_cells": int(m.n_cells),
         "status": reason,
@@ -227,6 +234,12 @@ def main(argv=None) -> int:
         help="problems 2, 3: level:order:formulation,... (mesh truncated_ellipsoid(4n, 8n, n))",
     )
     ap.add_argument("--steps", type=int, default=5, help="problems 2, 3: load increments")
+    ap.add_argument(
+        "--fibres",
+        default="cells",
+        choices=("cells", "quadrature"),
+        help="problem 3: helix fibres at the cell centroids or the quadrature points",
+    )
     ap.add_argument("--kappa", default="1000", help="penalty values [kPa], comma-separated")
     ap.add_argument(
         "--tangent",
@@ -282,9 +295,11 @@ def main(argv=None) -> int:
         for spec in a.ventricle.split(","):
             n, order, form = spec.split(":")
             for kappa in kappas:
-                r = ventricle(prob, int(n), int(order), form, kappa, steps=a.steps)
+                fibres = a.fibres if prob == 3 else "cells"
+                r = ventricle(prob, int(n), int(order), form, kappa, a.steps, fibres)
                 vrows.append(r)
                 label = f"{r['mesh']} {_element(r['order'], form)}"
+                label += " qp" if fibres == "quadrature" else ""
                 status = "ok" if r["ok"] else f"s={r['load_factor']:.2f}"
                 steps = "+".join(map(str, r["newton_steps"]))
                 print(

@@ -33,7 +33,9 @@ from .cardiac import Guccione as Guccione
 from .cardiac import guccione as guccione
 from .cardiac import guccione_params as guccione_params
 from .cardiac import per_cell_basis as per_cell_basis
+from .cardiac import per_quadrature_basis as per_quadrature_basis
 from .cardiac import with_active_tension as with_active_tension
+from .fibre_rules import helix_basis as helix_basis
 from .fibre_rules import helix_fibres as helix_fibres
 from .fibres import HolzapfelGasserOgden as HolzapfelGasserOgden
 from .fibres import fibre_pair as fibre_pair
@@ -99,7 +101,9 @@ __all__ = [
     "guccione",
     "guccione_params",
     "per_cell_basis",
+    "per_quadrature_basis",
     "with_active_tension",
+    "helix_basis",
     "helix_fibres",
     "DIRECTION_KEYS",
     "linear",

@@ -14,7 +14,10 @@ J, the form of the cardiac verification benchmarks (Land et al. 2015, *Proc. R. 
 471:20150641); as κ grows both forms tend to the same incompressible law.
 
 The basis vectors are material (reference) directions, shared (``(3,)``, or ``(2,)`` padded
-with z = 0) or per cell (``(n_cells, 3)``; :func:`per_cell_basis` broadcasts shared ones).
+with z = 0), per cell (``(n_cells, 3)``; :func:`per_cell_basis` broadcasts shared ones) or
+per quadrature point (an :class:`~jaxelastic.mechanics.quadrature_fields.AtQuadrature` of
+``(n_cells, n_q, 3)``: :func:`~jaxelastic.materials.fibre_rules.helix_basis` with
+``at="quadrature"``, or :func:`per_quadrature_basis`).
 Inside ψ, ``f0`` is normalised and ``s0`` is Gram–Schmidt orthogonalised against ``f0`` and
 normalised, so any non-parallel pair is accepted
 (:func:`~jaxelastic.materials.registry.check_guccione` refuses a zero or parallel pair).
@@ -36,6 +39,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ..mechanics.quadrature_fields import AtQuadrature, is_at_quadrature
 from .rubber import embed_direction, embed_plane_strain, safe_state, volumetric
 
 __all__ = [
@@ -44,6 +48,7 @@ __all__ = [
     "guccione_params",
     "guccione_basis",
     "per_cell_basis",
+    "per_quadrature_basis",
     "ActiveTension",
     "with_active_tension",
 ]
@@ -60,7 +65,8 @@ class Guccione(NamedTuple):
         bt: transverse (sheet–normal plane) exponent [–], > 0.
         bfs: fibre–sheet/fibre–normal shear exponent [–], > 0.
         kappa: bulk modulus of the volumetric penalty [stress], > 0.
-        f0: fibre direction (reference), ``(3,)``/``(2,)`` shared or ``(n_cells, 3)``.
+        f0: fibre direction (reference), ``(3,)``/``(2,)`` shared, ``(n_cells, 3)`` per
+            cell, or ``AtQuadrature((n_cells, n_q, 3))`` per quadrature point.
         s0: sheet direction (reference), same shapes; orthogonalised against f0 in ψ.
 
     The scalar fields may also be ``(n_cells,)`` per-cell fields.
@@ -144,6 +150,29 @@ def per_cell_basis(params: Guccione, n_cells: int) -> Guccione:
     return params._replace(f0=cells(params.f0), s0=cells(params.s0))
 
 
+def per_quadrature_basis(params: Guccione, n_cells: int, n_q: int) -> Guccione:
+    """``params`` with f0, s0 (shared ``(3,)`` or per cell ``(n_cells, 3)``) broadcast to
+    per-quadrature-point fields ``AtQuadrature((n_cells, n_q, 3))`` (already per-point ones
+    are kept). ``n_q = mesh.weights.shape[1]``.
+
+    Raises:
+        ValueError: a direction of another shape.
+    """
+
+    def points(a):
+        if is_at_quadrature(a):
+            return a
+        a = jnp.asarray(a)
+        if a.ndim == 1 or (a.ndim == 2 and a.shape[0] == n_cells):
+            return AtQuadrature(jnp.broadcast_to(a[..., None, :], (n_cells, n_q, a.shape[-1])))
+        raise ValueError(
+            f"per_quadrature_basis: a direction must be (d,) or (n_cells={n_cells}, d), "
+            f"got {a.shape}"
+        )
+
+    return params._replace(f0=points(params.f0), s0=points(params.s0))
+
+
 class ActiveTension(NamedTuple):
     """Parameters of :func:`with_active_tension`.
 
@@ -151,13 +180,19 @@ class ActiveTension(NamedTuple):
         passive: the parameters of the passive ψ.
         Ta: active tension [stress], scalar or ``(n_cells,)``. Ramp it with the load
             factor by passing ``s·T_a`` at each increment.
-        f0: the fibre direction it acts along, ``(3,)``/``(2,)`` or ``(n_cells, 3)``
-            (normalised inside ψ).
+        f0: the fibre direction it acts along, ``(3,)``/``(2,)``, ``(n_cells, 3)`` or
+            ``AtQuadrature((n_cells, n_q, 3))`` (normalised inside ψ).
     """
 
     passive: object
     Ta: Scalar
     f0: jax.Array
+
+    def scaled(self, s) -> ActiveTension:
+        """These parameters with the tension ``s·T_a`` (a load factor ``s``; the passive
+        law unchanged): the ``params_path`` of :func:`~jaxelastic.solve_incremental` that
+        ramps the contraction with the loads."""
+        return self._replace(Ta=s * jnp.asarray(self.Ta))
 
 
 @functools.cache

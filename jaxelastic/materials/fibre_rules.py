@@ -13,14 +13,27 @@ with e_u, e_v the normalised tangents ∂X/∂u, ∂X/∂v (Land et al. 2015, *P
 471:20150641, problem 3: endocardium r_s = 7, r_l = 17 mm, epicardium 10, 20 mm, base at
 z = 5 mm, α from +90° to −90°). f0 ⟂ s0 by construction (both unit). The directions are
 the reference ones the materials take: HGO's ``a01`` and Guccione's ``f0``/``s0``.
+
+:func:`helix_basis` samples the rule on a mesh: at the cell centroids (one direction per
+cell, ``(n_cells, 3)``) or at the quadrature points (an
+:class:`~jaxelastic.mechanics.quadrature_fields.AtQuadrature` of ``(n_cells, n_q, 3)``). The
+helix turns by 180° through the wall: with one to three cells through the thickness a
+direction per cell resolves it coarsely (the quadrature points of a P2 tet sample it at
+four depths per cell).
 """
 
 from __future__ import annotations
 
+from typing import Literal
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["helix_fibres", "transmural_coordinate", "LAND_ENDO", "LAND_EPI"]
+from ..mechanics.quadrature_fields import AtQuadrature
+from ..mesh.geometry import quadrature_points
+
+__all__ = ["helix_fibres", "helix_basis", "transmural_coordinate", "LAND_ENDO", "LAND_EPI"]
 
 LAND_ENDO = (7.0, 17.0)
 """Endocardial radii ``(r_short, r_long)`` [mm] of the Land et al. (2015) ventricle."""
@@ -93,3 +106,41 @@ def helix_fibres(
     alpha = jnp.deg2rad(alpha_endo + t * (alpha_epi - alpha_endo))
     f0 = jnp.sin(alpha)[:, None] * e_u + jnp.cos(alpha)[:, None] * e_v
     return f0, s0
+
+
+def helix_basis(
+    mesh,
+    *,
+    at: Literal["cells", "quadrature"] = "quadrature",
+    endo=LAND_ENDO,
+    epi=LAND_EPI,
+    alpha_endo=90.0,
+    alpha_epi=-90.0,
+):
+    """:func:`helix_fibres` sampled on a mesh: ``(f0, s0)`` for Guccione's basis (or
+    ``f0`` alone for HGO's ``a01``, or :class:`~jaxelastic.materials.ActiveTension`).
+
+    Args:
+        mesh: a 3D :class:`~jaxelastic.mesh.Mesh` of the ventricle wall [length].
+        at: ``"cells"``: at the centroids of the cells' corner nodes, each ``(n_cells, 3)``;
+            ``"quadrature"``: at the quadrature points
+            (:func:`~jaxelastic.mesh.geometry.quadrature_points`), each an
+            :class:`~jaxelastic.mechanics.quadrature_fields.AtQuadrature` of
+            ``(n_cells, n_q, 3)`` (for P1 cells n_q = 1: the centroid again).
+        endo, epi, alpha_endo, alpha_epi: as :func:`helix_fibres`.
+
+    Raises:
+        ValueError: ``at`` is neither, or the mesh is not 3D.
+    """
+    if at not in ("cells", "quadrature"):
+        raise ValueError(f"helix_basis: at must be 'cells' or 'quadrature', got {at!r}")
+    if mesh.dim != 3:
+        raise ValueError(f"helix_basis: the helix rule needs a 3D mesh, got a {mesh.dim}D one")
+    kw = dict(endo=endo, epi=epi, alpha_endo=alpha_endo, alpha_epi=alpha_epi)
+    if at == "cells":
+        corners = np.asarray(mesh.cells)[:, : mesh.dim + 1]
+        return helix_fibres(jnp.asarray(mesh.points)[corners].mean(axis=1), **kw)
+    X = quadrature_points(mesh.points, mesh.cells, mesh.element_type)  # (c, q, 3)
+    c, q, d = X.shape
+    f0, s0 = helix_fibres(jnp.reshape(X, (c * q, d)), **kw)
+    return AtQuadrature(f0.reshape(c, q, d)), AtQuadrature(s0.reshape(c, q, d))

@@ -13,6 +13,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from ..mechanics.quadrature_fields import is_at_quadrature
 from .cardiac import ActiveTension, Guccione, guccione, guccione_params
 from .fibres import HolzapfelGasserOgden, holzapfel_gasser_ogden, holzapfel_gasser_ogden_params
 from .isotropic import (
@@ -319,10 +320,20 @@ def check_guccione(params: Guccione) -> None:
         MaterialParameterError: naming the parameter and the first offending cell.
     """
     try:
-        values = {k: np.asarray(getattr(params, k)) for k in Guccione._fields}
+        values = {k: _host_values(getattr(params, k)) for k in Guccione._fields}
     except Exception:  # noqa: BLE001 — traced leaves (inside jit/grad): not checked
         return
     check_family("guccione", values)
+
+
+def _host_values(v) -> np.ndarray:
+    """A concrete parameter leaf as a NumPy array; a per-quadrature-point field
+    ``(n_cells, n_q, ...)`` flattened to ``(n_cells·n_q, ...)`` (checked like a per-cell
+    one; a message's index then counts points, cell-major)."""
+    if is_at_quadrature(v):
+        a = np.asarray(v.values)
+        return a.reshape((-1,) + a.shape[2:])
+    return np.asarray(v)
 
 
 def check_material(params, dim: int) -> None:
@@ -335,6 +346,16 @@ def check_material(params, dim: int) -> None:
         ValueError: naming the parameter (:class:`MaterialParameterError` for a family).
     """
     if isinstance(params, ActiveTension):  # the passive law's constants
+        try:
+            Ta = _host_values(params.Ta)
+        except Exception:  # noqa: BLE001 — traced (inside jit/grad): not checked
+            Ta = np.zeros(())
+        if not np.all(Ta >= 0):  # NaN fails too
+            bad = np.ravel(Ta)[~(np.ravel(Ta) >= 0)][0]
+            raise ValueError(
+                f"ActiveTension.Ta must be >= 0 and finite (a fibre tension, [stress]), got "
+                f"{float(bad)!r}"
+            )
         params = params.passive
     if isinstance(params, Lame):
         check_lame(params, dim)
@@ -342,7 +363,7 @@ def check_material(params, dim: int) -> None:
     for name, t in FAMILY_TYPES.items():
         if isinstance(params, t):
             try:
-                values = {k: np.asarray(getattr(params, k)) for k in t._fields}
+                values = {k: _host_values(getattr(params, k)) for k in t._fields}
             except Exception:  # noqa: BLE001 — traced leaves (inside jit/grad): not checked
                 return
             check_family(name, values)

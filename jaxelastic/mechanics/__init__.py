@@ -5,6 +5,8 @@ PSD projection, and the potential the solvers minimise.
   the rotation-variant ``polar``, ``svd_rv``, F-bar and B-bar;
 * :mod:`~jaxelastic.mechanics.checks`: the input checks of every ``(psi, x, mesh, params)``
   function and the per-cell parameter axes;
+* :mod:`~jaxelastic.mechanics.quadrature_fields`: material data per quadrature point
+  (:class:`AtQuadrature`);
 * :mod:`~jaxelastic.mechanics.kernels`: energy, first Piola stress, forces, HVPs, element
   forces and the scatter-free assembly;
 * :mod:`~jaxelastic.mechanics.hessians`: element Hessians by contraction (and the autodiff
@@ -18,6 +20,7 @@ PSD projection, and the potential the solvers minimise.
 from . import fusion as fusion
 from . import kinematics as kinematics
 from . import potential as potential
+from . import quadrature_fields as quadrature_fields
 from .checks import cell_params_axes as cell_params_axes
 from .checks import check_finite as check_finite
 from .checks import check_positions as check_positions
@@ -38,11 +41,13 @@ from .potential import Potential as Potential
 from .psd import project_element_psd as project_element_psd
 from .psd import project_psd as project_psd
 from .psd import project_psd_serial as project_psd_serial
+from .quadrature_fields import AtQuadrature as AtQuadrature
 
 __all__ = [
     "fusion",
     "kinematics",
     "potential",
+    "quadrature_fields",
     "cell_params_axes",
     "check_finite",
     "check_positions",
@@ -63,4 +68,5 @@ __all__ = [
     "project_element_psd",
     "project_psd",
     "project_psd_serial",
+    "AtQuadrature",
 ]

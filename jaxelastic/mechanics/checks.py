@@ -11,7 +11,9 @@ float leaves of ``params`` (:func:`check_finite`); inside ``jax.jit`` (or under
 solvers report it in their status).
 
 ``params`` is any pytree: a leaf of shape ``()`` is shared by all cells, a leaf with a
-leading axis of length ``n_cells`` is a per-cell field (:func:`cell_params_axes`).
+leading axis of length ``n_cells`` is a per-cell field (:func:`cell_params_axes`), and an
+:class:`~jaxelastic.mechanics.quadrature_fields.AtQuadrature` of shape ``(n_cells, n_q, ...)``
+a per-quadrature-point field (:func:`check_call` checks ``n_q`` against the mesh).
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
+
+from .quadrature_fields import check_quadrature_fields, is_at_quadrature
 
 __all__ = [
     "cell_params_axes",
@@ -36,13 +40,23 @@ __all__ = [
 
 
 def cell_params_axes(params, n_cells: int):
-    """vmap ``in_axes`` for ``params``: 0 for per-cell leaves, None for shared scalars.
+    """vmap ``in_axes`` for ``params``: 0 for per-cell leaves and per-point
+    (:class:`~jaxelastic.mechanics.quadrature_fields.AtQuadrature`) nodes, None for shared
+    scalars.
 
     Raises:
         ValueError: a non-scalar leaf whose leading axis is not ``n_cells``.
     """
 
     def axis(leaf):
+        if is_at_quadrature(leaf):
+            shape = tuple(getattr(leaf.values, "shape", ()))
+            if len(shape) < 2 or shape[0] != n_cells:
+                raise ValueError(
+                    f"material parameter AtQuadrature of shape {shape} is not a per-point "
+                    f"field of shape (n_cells, n_q, ...) with n_cells={n_cells}"
+                )
+            return 0
         shape = jnp.shape(leaf)
         if len(shape) == 0:
             return None
@@ -53,7 +67,7 @@ def cell_params_axes(params, n_cells: int):
             )
         return 0
 
-    return jax.tree_util.tree_map(axis, params)
+    return jax.tree_util.tree_map(axis, params, is_leaf=is_at_quadrature)
 
 
 def per_cell(fn, params, n_cells):
@@ -112,14 +126,22 @@ _NUMBERS = (bool, int, float, complex)
 
 
 def _param_key(params, n_cells: int):
-    """``(treedef, leaves, per_cell, key)`` of ``params``: ``per_cell[i]`` says leaf i has a
-    leading ``n_cells`` axis; ``key`` is a hashable summary of the structure ψ sees (None if a
-    leaf is neither an array nor a Python number: nothing can be checked)."""
-    leaves, treedef = jax.tree_util.tree_flatten(params)
+    """``(treedef, leaves, per_cell, key)`` of ``params``: ``per_cell[i]`` is the number of
+    leading axes of leaf i that ψ does not see (0 shared, 1 per cell, 2 per quadrature point:
+    an :class:`~jaxelastic.mechanics.quadrature_fields.AtQuadrature`, a leaf here); ``key``
+    is a hashable summary of the structure ψ sees (None if a leaf is neither an array nor a
+    Python number: nothing can be checked)."""
+    leaves, treedef = jax.tree_util.tree_flatten(params, is_leaf=is_at_quadrature)
     per_cell, key = [], []
     for leaf in leaves:
+        if is_at_quadrature(leaf):
+            cell_params_axes(leaf, n_cells)  # raises on a bad shape
+            v = leaf.values
+            per_cell.append(2)
+            key.append(("q", tuple(v.shape), v.dtype, bool(getattr(v, "weak_type", False))))
+            continue
         if isinstance(leaf, _NUMBERS):
-            per_cell.append(False)
+            per_cell.append(0)
             key.append(type(leaf))
             continue
         shape, dtype = getattr(leaf, "shape", None), getattr(leaf, "dtype", None)
@@ -128,23 +150,25 @@ def _param_key(params, n_cells: int):
         shape = tuple(shape)
         if shape and shape[0] != n_cells:
             cell_params_axes(params, n_cells)  # raises the message naming the shape
-        per_cell.append(bool(shape))
+        per_cell.append(int(bool(shape)))
         key.append((shape, dtype, bool(getattr(leaf, "weak_type", False))))
     return treedef, leaves, per_cell, (treedef, tuple(key))
 
 
 def _param_spec(treedef, leaves, per_cell):
-    """Parameters as ψ sees them for one cell, as ShapeDtypeStructs (numbers kept)."""
-    spec = [
-        leaf
-        if isinstance(leaf, _NUMBERS)
-        else jax.ShapeDtypeStruct(
-            tuple(leaf.shape)[1:] if pc else tuple(leaf.shape),
-            leaf.dtype,
-            weak_type=bool(getattr(leaf, "weak_type", False)),
+    """Parameters as ψ sees them at one point, as ShapeDtypeStructs (numbers kept,
+    per-point wrappers removed)."""
+    spec = []
+    for leaf, pc in zip(leaves, per_cell, strict=True):
+        if isinstance(leaf, _NUMBERS):
+            spec.append(leaf)
+            continue
+        a = leaf.values if is_at_quadrature(leaf) else leaf
+        spec.append(
+            jax.ShapeDtypeStruct(
+                tuple(a.shape)[pc:], a.dtype, weak_type=bool(getattr(a, "weak_type", False))
+            )
         )
-        for leaf, pc in zip(leaves, per_cell, strict=True)
-    ]
     return jax.tree_util.tree_unflatten(treedef, spec)
 
 
@@ -291,6 +315,7 @@ def check_call(where: str, psi, x, mesh, params, **more) -> None:
     check_positions(x, mesh, where=where)
     for name, v in more.items():
         check_positions(v, mesh, name=name, where=where)
+    check_quadrature_fields(params, mesh.n_cells, int(mesh.weights.shape[1]), where=where)
     check_psi(psi, mesh.points.shape[1], mesh.points.dtype, params, mesh.n_cells, where=where)
     if not isinstance(mesh.points, Tracer):  # a traced mesh: inside a transformation
         check_finite(where, x=x, params=params, **more)

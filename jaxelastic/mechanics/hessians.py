@@ -22,6 +22,7 @@ from .fusion import always, computed
 from .kernels import Psi, cell_contract, cell_F, element_energy, fbar_form
 from .kinematics import b_bar, cofactor, det, displacements
 from .psd import project_element_psd, project_psd_serial
+from .quadrature_fields import over_quadrature
 
 __all__ = ["element_hessians", "element_hessians_reference"]
 
@@ -231,7 +232,7 @@ def _fbar_hessian_terms(psi, F, w, p, form: str, pred):
         ``g = Σ_q B_qᵀ vec Gq`` and ``z = Σ_q B_qᵀ vec Zq`` (:func:`_bt_sum`); κ a scalar.
     """
     d = F.shape[-1]
-    H = jax.vmap(jax.hessian(psi, argnums=0), in_axes=(0, None))
+    H = over_quadrature(jax.hessian(psi, argnums=0))
     eye = jnp.eye(d, dtype=F.dtype)
     omega = w / jnp.where(jnp.sum(w) > 0, jnp.sum(w), 1.0)  # Σw = 0: a padded cell
     if form == "bbar":
@@ -257,7 +258,7 @@ def _fbar_hessian_terms(psi, F, w, p, form: str, pred):
     ratio = jnp.where(ok, Jbar_s / jnp.where(ok, J, 1.0), 1.0)
     theta = ratio ** (1.0 / d)
     Fb = theta[:, None, None] * F
-    dpsi = jax.vmap(jax.grad(psi, argnums=0), in_axes=(0, None))
+    dpsi = over_quadrature(jax.grad(psi, argnums=0))
     P, C = computed(lambda Fb, p: (dpsi(Fb, p), H(Fb, p)), pred, Fb, p)
     Fi = cof / jnp.where(ok, J, 1.0)[:, None, None]  # F⁻ᵀ where ok (else unused)
     wt = w * theta
@@ -294,7 +295,7 @@ def _element_hessian_terms(psi, fbar: str | None, pred):
     """Per cell ``(ue, dN, w, params) ↦ (Ĉ (q, d, d, d, d), g (k, d), z (k, d), κ)``: the
     element Hessian is ``Σ_q B_qᵀ Ĉ_q B_q + g zᵀ + z gᵀ + κ g gᵀ`` (g = z = 0, κ = 0 for
     the standard formulation, where ``Ĉ_q = w_q ∂²ψ/∂F²(F_q)``)."""
-    H = jax.vmap(jax.hessian(psi, argnums=0), in_axes=(0, None))
+    H = over_quadrature(jax.hessian(psi, argnums=0))
 
     def terms(ue, dN, w, p):
         F = cell_F(ue, dN)

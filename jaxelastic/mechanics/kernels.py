@@ -40,6 +40,7 @@ from jax.core import Tracer
 
 from .checks import cell_params_axes, check_call, per_cell
 from .kinematics import b_bar, deformation_gradients, displacements, f_bar
+from .quadrature_fields import over_quadrature
 
 __all__ = [
     "Psi",
@@ -91,7 +92,7 @@ def energy_densities(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
 def _energy_densities(psi: Psi, x: jax.Array, mesh, params) -> jax.Array:
     F = deformation_gradients(x, mesh)
     ax = cell_params_axes(params, mesh.n_cells)
-    per_q = jax.vmap(psi, in_axes=(0, None))
+    per_q = over_quadrature(psi)
     return jax.vmap(per_q, in_axes=(0, ax))(F, params)
 
 
@@ -158,7 +159,7 @@ def _fbar_element_energy(psi, form: str = "fbar"):
 
     def ee(ue, dN, w, p):
         F = fmap(cell_F(ue, dN), w)
-        return jnp.sum(w * jax.vmap(psi, in_axes=(0, None))(F, p))
+        return jnp.sum(w * over_quadrature(psi)(F, p))
 
     return ee
 
@@ -169,7 +170,7 @@ def element_energy(psi, form: str | None = None):
         return _fbar_element_energy(psi, form)
 
     def ee(ue, dN, w, p):
-        return jnp.sum(w * jax.vmap(psi, in_axes=(0, None))(cell_F(ue, dN), p))
+        return jnp.sum(w * over_quadrature(psi)(cell_F(ue, dN), p))
 
     return ee
 
@@ -193,7 +194,7 @@ def element_gradient_kernel(psi, fbar: str | None = None):
     def fe(ue, dN, w, p):
         # ue (k, d), dN (q, k, d), w (q,) -> ∂E_e/∂xe (k, d)
         F = cell_F(ue, dN)
-        Pq = jax.vmap(P, in_axes=(0, None))(F, p)  # (q, d, d)
+        Pq = over_quadrature(P)(F, p)  # (q, d, d)
         return cell_contract(w, Pq, dN)
 
     return fe
@@ -299,7 +300,7 @@ def _element_hvp(psi, fbar: str | None = None):
     def he(ue, ve, dN, w, p):
         F = cell_F(ue, dN)
         dF = _cell_grad(ve, dN)
-        Pp = lambda f: jax.vmap(P, in_axes=(0, None))(f, p)
+        Pp = lambda f: over_quadrature(P)(f, p)
         _, dP = jax.jvp(Pp, (F,), (dF,))
         return cell_contract(w, dP, dN)
 

@@ -48,6 +48,7 @@ __all__ = [
     "facet_integrals",
     "lumped_masses",
     "consistent_shape_integrals",
+    "quadrature_points",
 ]
 
 RELATIVE_MEASURE_MIN = 1e-12
@@ -240,6 +241,20 @@ def consistent_shape_integrals(points, cells, element: Element):
     _, detJ = inverse_and_det(J)  # (c, r)
     wd = detJ * _const(xp, w, points)[None, :]
     return wd @ N, wd @ (N * N)
+
+
+def quadrature_points(points, cells, element: Element):
+    """Rest positions of the quadrature points, ``(n_cells, n_q, dim)`` [length]:
+    ``X_q = Σ_a N_a(ξ_q) X_a`` (composite elements: the centroid of each linear
+    sub-simplex, its one quadrature point). The points where per-point material data
+    (:class:`~jaxelastic.mechanics.quadrature_fields.AtQuadrature`) is sampled."""
+    xp = array_module(points)
+    xe = points[cells]  # (c, k, d)
+    if element.is_composite:
+        sub = np.asarray(element.sub_cells)  # (q, d + 1)
+        return xe[:, sub].mean(axis=2)
+    N = _const(xp, element.shape_functions(element.quad_points), points)  # (q, k)
+    return xp.einsum("qk,cka->cqa", N, xe)
 
 
 def lumped_masses(points, cells, element: Element, weights, density):

@@ -19,7 +19,9 @@ complete): ``balloon`` (an inflated thick sphere and its pressure–volume curve
 ``cook``, ``default`` (a neo-Hookean beam released under gravity), ``drop``,
 ``fibre_block``, ``fit_cantilever``, ``fit_plate_hole`` (Mooney–Rivlin constants from a
 force curve and DIC points), ``fold``, ``press``, ``swing2d``, ``twist``, ``ventricle`` (an
-idealised left ventricle inflated to 10 kPa: Land et al. 2015, problem 2).
+idealised left ventricle inflated to 10 kPa: Land et al. 2015, problem 2),
+``ventricle_active`` (the same ventricle contracting: an active fibre tension of 60 kPa
+against 15 kPa, helix fibres at the quadrature points; problem 3).
 """
 
 import importlib

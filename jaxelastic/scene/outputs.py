@@ -24,6 +24,7 @@ from .. import plot as _plot
 from .. import postprocess
 from ..io import TimeSeriesWriter, to_jsonable, write_atomic, write_json
 from ..loads import Dirichlet
+from ..materials import ActiveTension
 from ..mechanics.kernels import energy
 from ..mechanics.kinematics import deformation_extremes
 from ..postprocess import stress_fields
@@ -252,8 +253,11 @@ def reaction_report(built: Built, x, bc: Dirichlet) -> dict:
 
 def _material_constants(params) -> dict:
     """The scalar material constants for the summary: ``mu, lam`` of a Lamé model, every
-    scalar field of a rubber/tissue parameter type (fibre directions left out)."""
+    scalar field of a rubber/tissue parameter type (fibre directions left out), and an
+    active fibre tension as ``active_tension``."""
     out = {}
+    if isinstance(params, ActiveTension):
+        return dict(_material_constants(params.passive), active_tension=float(params.Ta))
     for k, v in params._asdict().items():
         a = np.asarray(v)
         if a.ndim == 0:

@@ -29,13 +29,16 @@ from ..materials import (
     DIRECTION_KEYS,
     FAMILIES,
     FAMILY_TYPES,
+    ActiveTension,
     Guccione,
     Lame,
     check_guccione,
-    helix_fibres,
+    helix_basis,
     lame,
+    with_active_tension,
 )
 from ..mechanics.potential import Potential
+from ..mechanics.quadrature_fields import AtQuadrature, first_point_params, is_at_quadrature
 from ..mesh import (
     Mesh,
     MeshError,
@@ -341,7 +344,7 @@ def _family_params(scene: Scene, mesh: Mesh, md: MeshData | None):
     fields = FAMILY_TYPES[m.model]._fields
     raw: dict = {}  # the mesh file's cell data, read once if a fibre key asks for it
     vals = {
-        k: jnp.asarray(
+        k: _as_param(
             _fibre_field(scene, k, getattr(m, k), mesh, md, raw)
             if k in _FIBRE_KEYS
             else getattr(m, k),
@@ -361,8 +364,16 @@ def _family_params(scene: Scene, mesh: Mesh, md: MeshData | None):
 _FIBRE_KEYS = DIRECTION_KEYS
 
 
+def _as_param(v, dtype):
+    """A parameter leaf in ``dtype`` (a per-quadrature-point field keeps its wrapper)."""
+    if is_at_quadrature(v):
+        return AtQuadrature(jnp.asarray(v.values, dtype))
+    return jnp.asarray(v, dtype)
+
+
 def _fibre_field(scene: Scene, key: str, spec, mesh: Mesh, md: MeshData | None, raw: dict):
-    """``[material].<key>`` (an HGO fibre direction) as a per-cell ``(n_cells, ·)`` array.
+    """``[material].<key>`` (an HGO fibre direction) as a per-cell ``(n_cells, ·)`` array,
+    or (a rule with ``at = "quadrature"``) an ``AtQuadrature`` of ``(n_cells, n_q, 3)``.
 
     A vector is broadcast as given (ψ normalises it); ``{ cell_data = ... }`` and where
     regions give normalised ``(n_cells, 3)`` rows (2D directions padded with z = 0).
@@ -376,7 +387,10 @@ def _fibre_field(scene: Scene, key: str, spec, mesh: Mesh, md: MeshData | None, 
     if isinstance(spec, FibreCellData):
         a = _cell_data_fibres(scene, f"[material].{key}.cell_data", spec.cell_data, mesh, md, raw)
     elif isinstance(spec, FibreRule):
-        a = _rule_fibres(scene, key, spec, mesh)
+        rule = _rule_fibres(scene, key, spec, mesh)
+        if isinstance(rule, AtQuadrature):
+            return rule  # unit rows already
+        a = rule
     elif spec and isinstance(spec[0], FibreRegion):
         a = _region_fibres(scene, key, spec, mesh)
     else:
@@ -386,18 +400,25 @@ def _fibre_field(scene: Scene, key: str, spec, mesh: Mesh, md: MeshData | None, 
     return a / np.linalg.norm(a, axis=1, keepdims=True)
 
 
-def _rule_fibres(scene: Scene, key: str, rule: FibreRule, mesh: Mesh) -> np.ndarray:
-    """Per-cell directions ``(n_cells, 3)`` of the helix rule at the cell centroids (the
-    corners' mean): the fibre (``"helix"``) or the sheet normal (``"transmural"``)."""
+def _rule_fibres(scene: Scene, key: str, rule: FibreRule, mesh: Mesh):
+    """Directions of the helix rule at the cell centroids (the corners' mean),
+    ``(n_cells, 3)``, or at the quadrature points (``rule.at``), an ``AtQuadrature`` of
+    ``(n_cells, n_q, 3)``: the fibre (``"helix"``) or the sheet normal (``"transmural"``)."""
     if mesh.dim != 3:
         raise scene.error(
             f"[material].{key}: rule = {rule.rule!r} needs a 3D mesh (an ellipsoidal "
             f"ventricle), the mesh is {mesh.dim}D"
         )
-    cells = np.asarray(mesh.cells)[:, : mesh.dim + 1]
-    centroids = np.asarray(mesh.points, dtype=np.float64)[cells].mean(axis=1)
-    f0, s0 = helix_fibres(centroids, rule.endo_radii, rule.epi_radii, rule.endo, rule.epi)
-    return np.asarray(f0 if rule.rule == "helix" else s0)
+    f0, s0 = helix_basis(
+        mesh,
+        at=rule.at,
+        endo=rule.endo_radii,
+        epi=rule.epi_radii,
+        alpha_endo=rule.endo,
+        alpha_epi=rule.epi,
+    )
+    a = f0 if rule.rule == "helix" else s0
+    return a if isinstance(a, AtQuadrature) else np.asarray(a)
 
 
 def _region_fibres(scene: Scene, key: str, regions, mesh: Mesh) -> np.ndarray:
@@ -500,7 +521,11 @@ def _material(scene: Scene, mesh: Mesh, md: MeshData | None = None) -> tuple[Cal
     if model in FAMILIES:
         psi = FAMILIES[model]
         params = _family_params(scene, mesh, md)
-        first = jax.tree_util.tree_map(lambda v: v[0] if v.ndim else v, params)
+        if m.active_tension is not None:  # [material].active_tension: along f0
+            psi = with_active_tension(psi)
+            Ta = jnp.asarray(m.active_tension, jnp.zeros(()).dtype)
+            params = ActiveTension(params, Ta, params.f0)
+        first = jax.tree_util.tree_map(lambda v: v[0] if v.ndim else v, first_point_params(params))
         _check_at_identity(scene, psi, first, dim)  # one cell's parameters
         return psi, params
     psi = BUILTIN[model] if ":" not in model else _user_callable(scene, "[material].model", model)
@@ -971,6 +996,12 @@ def build(scene) -> Built:
     pot = build_contact(scene, pot)  # [[obstacle]]: barrier contact (else unchanged)
     # [[pressure]] / [[cavity]]: the pressure term and the cavities (else unchanged, None)
     pot, cavities = build_pressure(scene, pot, bc, md, select_facets)
+    if isinstance(params, ActiveTension) and cavities is not None and cavities.volumes is not None:
+        raise scene.error(
+            "[material].active_tension is ramped with the load factor of [integrator].load_steps;"
+            " a [[cavity]] with a prescribed volume steps the volume instead: give the cavity a "
+            "pressure ([[pressure]] cavity = ...) or leave active_tension out"
+        )
     sharded = None
     if scene.spec.solver.devices > 1:  # [solver] devices: solve on the padded layout
         sharded = _shard(scene, pot, bc_fn, bc, v0)

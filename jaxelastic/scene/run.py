@@ -22,6 +22,7 @@ from .. import dynamics
 from .. import plot as _plot
 from ..io import TimeSeriesWriter
 from ..loads import Dirichlet
+from ..materials import ActiveTension
 from ..parallel.distributed import host_array
 from ..solvers import Solution, SolveError, SolveWarning, solve_incremental
 from . import interrupt, memory
@@ -133,6 +134,7 @@ def static_solve(
     on_increment = callback or (lambda s, sol: interrupt.check())
     if bc is None and built.cavities is not None and built.cavities.volumes is not None:
         return volume_controlled_solve(built, n, on_increment)  # [[cavity]] volume = ...
+    active = isinstance(pot.params, ActiveTension)  # [material].active_tension: ramped
     sol = solve_incremental(
         pot,
         path(1.0),
@@ -142,6 +144,7 @@ def static_solve(
         path=path,
         throw=False,
         callback=lambda s, so: on_increment(s, natural_solution(built, so)),
+        params_path=pot.params.scaled if active else None,
     )
     sol = natural_solution(built, sol)
     stats = [

@@ -408,8 +408,8 @@ def _default_last(v: tuple) -> tuple:
 
 
 class FibreRule(Table):
-    """Per-cell directions of the helix rule of a thick ellipsoidal ventricle (3D meshes),
-    at the cell centroids (:func:`jaxelastic.materials.helix_fibres`)."""
+    """Directions of the helix rule of a thick ellipsoidal ventricle (3D meshes), at the
+    cell centroids or the quadrature points (:func:`jaxelastic.materials.helix_basis`)."""
 
     rule: Literal["helix", "transmural"] = Field(
         description='"helix": the fibre sin(a) e_u + cos(a) e_v with the helix angle a linear '
@@ -430,6 +430,13 @@ class FibreRule(Table):
     )
     epi_radii: tuple[Positive, Positive] = Field(
         default=(10.0, 20.0), description="(short, long) radii of the epicardium"
+    )
+    at: Literal["cells", "quadrature"] = Field(
+        default="cells",
+        description='where the rule is sampled: "cells" (one direction per cell, at the '
+        'centroid) or "quadrature" (one per quadrature point: resolves the helix through a '
+        "wall only a few cells thick; the same cost per Newton step, n_q x the memory of "
+        "the directions)",
     )
 
     @classmethod
@@ -557,9 +564,21 @@ class MaterialSpec(Table):
         description="Guccione sheet direction (the same forms as a01; orthogonalised against "
         "f0, must not be parallel to it)",
     )
+    active_tension: NonNegative | None = Field(
+        default=None,
+        description="[Pa] Guccione only: an active fibre tension T_a >= 0 (second Piola stress "
+        "S_a = T_a f0 f0, jaxelastic.materials.with_active_tension), uniform; a static scene "
+        "ramps it with [integrator].load_steps together with the loads and pressures, a "
+        "dynamic one applies it in full from t = 0",
+    )
 
     @model_validator(mode="after")
     def _one_pair(self):
+        if self.active_tension is not None and self.model != "guccione":
+            raise fail(
+                f"{{at}}.active_tension is a key of 'guccione' (along its f0), not of "
+                f"{self.model!r}"
+            )
         if self.model in FAMILIES:
             return self._family_keys()
         has_E = self.E is not None or self.nu is not None
@@ -1402,6 +1421,11 @@ class SceneSpec(Table):
         """An unknown ``[fit].fields`` name or a missing initial value, or None."""
         fit, model = self.fit, self.material.model
         assert fit is not None
+        if self.material.active_tension is not None:
+            return (
+                "[fit] with [material].active_tension: a fit identifies passive constants; "
+                "leave active_tension out of a [fit] scene"
+            )
         valid = fit_parameters(model)
         if model in FAMILIES and not fit.measured:
             return (

@@ -2,8 +2,10 @@
 
 For loads too large for one Newton solve (buckling-prone, strongly nonlinear, or a boundary
 motion that would tangle the mesh in one step), the load factor ``s`` goes from 0 to 1;
-at each trial ``s`` the potential's external forces are ``s·f_ext`` (pressures ``s·p``)
-and the Dirichlet data ``path(s)`` (default: the prescribed displacement scaled by ``s``).
+at each trial ``s`` the potential's external forces are ``s·f_ext`` (pressures ``s·p``),
+the Dirichlet data ``path(s)`` (default: the prescribed displacement scaled by ``s``) and,
+when given, the material parameters ``params_path(s)`` (e.g. an active fibre tension
+``s·T_a``: :meth:`~jaxelastic.materials.ActiveTension.scaled`).
 A failed solve halves the increment (from the last converged state); a success grows it
 again (×1.5, at most the initial increment). Every increment is one
 :func:`~jaxelastic.solvers.equilibrium.solve`; all share one compilation (only array values
@@ -55,6 +57,15 @@ def _record(s: float, res: Solution) -> dict:
     )
 
 
+def _at_load_factor(pot: Potential, f_full, s: float, params_path) -> Potential:
+    """``pot`` at load factor ``s``: forces and pressures scaled (and the parameters of
+    ``params_path``, when given)."""
+    p = pot if f_full is None else pot.replace(f_ext=s * f_full)
+    if pot.pressure is not None:  # pressures ramped like the forces
+        p = p.replace(pressure=pot.pressure.scaled(s))
+    return p if params_path is None else p.replace(params=params_path(s))
+
+
 def solve_incremental(
     pot: Potential,
     bc: Dirichlet,
@@ -66,6 +77,7 @@ def solve_incremental(
     path: Callable[[float], Dirichlet] | None = None,
     throw: bool = True,
     callback: Callable[[float, Solution], None] | None = None,
+    params_path: Callable[[float], object] | None = None,
 ) -> Solution:
     """Solve the static problem at load factor 1 by increments with automatic cut-back.
 
@@ -81,6 +93,9 @@ def solve_incremental(
             rotation by ``s·θ`` instead of a scaled displacement.
         throw: raise :class:`~jaxelastic.solvers.results.SolveError` when it fails.
         callback: called with ``(s, solution)`` after every converged increment.
+        params_path: optional ``s ↦`` material parameters (the same pytree structure and
+            shapes as ``pot.params`` at every ``s``: one compilation); default
+            ``pot.params`` throughout.
 
     Returns:
         The :class:`~jaxelastic.solvers.results.Solution` of the last solve tried, with
@@ -104,9 +119,7 @@ def solve_incremental(
     t0 = time.perf_counter()
     while s < 1.0:
         s_try = min(1.0, s + ds)
-        p = pot if f_full is None else pot.replace(f_ext=s_try * f_full)
-        if pot.pressure is not None:  # pressures ramped like the forces
-            p = p.replace(pressure=pot.pressure.scaled(s_try))
+        p = _at_load_factor(pot, f_full, s_try, params_path)
         x_start = x
         if pot.contact is not None:  # obstacles at time s_try, friction lagged at x (time s)
             c = pot.contact.at_time(s)
