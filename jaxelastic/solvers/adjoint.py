@@ -33,7 +33,7 @@ non-symmetric Jacobian ``J`` (the symmetric Hessian plus the skew pressure stiff
 ``J_ffᵀ λ = x̄_f`` with the transpose and ``v̄_D = x̄_D − (Jᵀλ)_D``, its forward-mode
 tangent ``J_ff ẋ_f = −(∂g_f/∂θ)·θ̇ − J_fD v̇_D`` (a ``lax.custom_linear_solve`` whose
 transpose solves with ``Jᵀ``, so reverse over forward works too); both by restarted GMRES
-(:func:`~jaxelastic.solvers.linear.gmres.gmres`, Saad & Schultz 1986) preconditioned by
+(:func:`~jaxelastic.solvers.linear.nonsymmetric.gmres`, Saad & Schultz 1986) preconditioned by
 the linear solver's preconditioner of the symmetric part
 (:meth:`~jaxelastic.solvers.linear.LinearSolver.symmetric_preconditioner`).
 
@@ -63,7 +63,7 @@ from ..mechanics import potential as pot_mod
 from ..mechanics.potential import Potential
 from ..mechanics.pressure import is_conservative
 from .linear import HostSolver, LinearState, NewtonSystem, assemble_upper, exact_system
-from .linear.gmres import gmres
+from .linear.nonsymmetric import gmres
 from .linear.system import mass_or_zeros
 from .newton import Newton, minimize, solved_potential
 from .results import Solution, Status

@@ -12,7 +12,6 @@ from .auto import AUTO_DIRECT_MAX_DOFS_P2 as AUTO_DIRECT_MAX_DOFS_P2
 from .auto import AUTO_DIRECT_MAX_DOFS_QUADRATIC as AUTO_DIRECT_MAX_DOFS_QUADRATIC
 from .auto import LINEAR_SOLVERS as LINEAR_SOLVERS
 from .auto import choose as choose
-from .gmres import gmres as gmres
 from .host import AMG as AMG
 from .host import Direct as Direct
 from .host import HostSolver as HostSolver
@@ -22,6 +21,7 @@ from .krylov import block_jacobi as block_jacobi
 from .krylov import cg as cg
 from .krylov import jacobi as jacobi
 from .multilevel import Multilevel as Multilevel
+from .nonsymmetric import gmres as gmres
 from .protocol import LinearSolver as LinearSolver
 from .protocol import LinearState as LinearState
 from .selection import bind_linear as bind_linear

@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 import jax
 
 from ..results import Solution
-from .gmres import gmres
+from .nonsymmetric import gmres
 from .system import NewtonSystem
 
 __all__ = ["LinearSolver", "LinearState", "NONSYMMETRIC_MAX_ITER"]
