@@ -52,6 +52,14 @@ __all__ = ["run_fit", "region_labels", "read_observed"]
 # ----------------------------------------------------------------------------------------
 
 
+def _optimizer(cfg: FitSpec) -> Any:
+    """The ``optimizer`` argument of :func:`~jaxelastic.fitting.fit` for ``[fit]``: its name,
+    or for ``"lm"`` the Levenberg–Marquardt settings with the scene's ``atol``."""
+    if cfg.optimizer == "lm":
+        return fitting.LMSettings(atol=cfg.atol)
+    return cfg.optimizer
+
+
 def region_labels(mesh, regions) -> np.ndarray:
     """``(n_cells,)`` int labels: the first ``where`` expression a cell centroid satisfies,
     ``len(regions)`` for cells matching none."""
@@ -258,7 +266,7 @@ def _fit(scene: Scene, cases, labels, n_reg: int, progress: bool, callback=None)
         regions=labels,
         fields=tuple(cfg.fields),
         plane=spec.material.plane or "strain",
-        optimizer=cfg.optimizer,
+        optimizer=_optimizer(cfg),
         learning_rate=cfg.learning_rate,
         max_iter=cfg.max_iter,
         gtol=cfg.gtol,
@@ -569,7 +577,7 @@ def _measured_fit(scene: Scene, out: str, builts: list[Built], progress: bool, s
     with interrupt.immediate():
         res = fitting.fit(
             cases, init, transforms=transforms, fields=fields,
-            plane=spec.material.plane or "strain", optimizer=cfg.optimizer,
+            plane=spec.material.plane or "strain", optimizer=_optimizer(cfg),
             learning_rate=cfg.learning_rate, max_iter=cfg.max_iter, gtol=cfg.gtol,
             solver=solver.replace(rtol=min(solver.rtol, 1e-10)), progress=progress,
             callback=at_iteration, uncertainty=True,
@@ -642,11 +650,11 @@ def _measured_figure(res: fitting.FitResult, cases, summary: dict, title: str):
 def _observation_panel(ax, case, o, pred) -> None:
     f = np.asarray(case.factors)
     data = np.asarray(o.target(o.data))
-    if o.kind in ("reaction", "moment"):
+    if o.kind in ("reaction", "moment", "cavity_volume"):
         ax.plot(f, data, "o", label="measured")
         ax.plot(f, pred, "-", label="fitted model")
-        unit = "moment [N·m]" if o.kind == "moment" else "force [N]"
-        ax.set(xlabel="load factor", ylabel=unit, title=f"{o.kind}")
+        unit = {"moment": "moment [N·m]", "cavity_volume": "cavity volume [m³]"}
+        ax.set(xlabel="load factor", ylabel=unit.get(o.kind, "force [N]"), title=f"{o.kind}")
         ax.legend(fontsize=8)
         return
     if o.kind == "points":

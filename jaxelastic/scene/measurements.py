@@ -9,7 +9,9 @@ One entry per load factor of the case (the layouts the schema documents):
 * ``points``: NPZ with ``points`` ``(n, dim)`` rest coordinates [m] and ``displacements``
   ``(n_levels, n, dim)`` [m] (components not in ``components`` are ignored);
 * ``positions``: NPZ with ``nodes`` ``(n,)`` and ``positions`` ``(n_levels, n, dim)`` [m];
-* ``surface``: NPZ with ``points`` ``(n_levels, m, dim)`` measured deformed positions [m].
+* ``surface``: NPZ with ``points`` ``(n_levels, m, dim)`` measured deformed positions [m];
+* ``volume``: CSV with the header ``factor,volume``, one row per load factor, the volume
+  of the ``[[cavity]]`` named by ``cavity`` [m³] (2D: area per unit thickness [m²]).
 
 Every problem is a :class:`~jaxelastic.scene.errors.SceneError` naming the key, the file
 and the row or entry, raised before any solve.
@@ -177,8 +179,25 @@ def _surface(scene, key, where, path, spec: FitObservation, factors, bt: Built):
     return fitting.Surface.at(bt.mesh, p, spec.sigma)
 
 
+def _volume(scene, key, where, path, spec: FitObservation, factors, bt: Built):
+    volume = _curve(scene, where, path, "volume", factors)
+    cav = bt.cavities
+    assert cav is not None and spec.cavity in cav.names  # the schema checked the name
+    k = cav.names.index(spec.cavity)
+    term = cav.term
+    facets = np.asarray(term.facets)[np.asarray(term.surface) == k]
+    origin = np.asarray(term.origin)[k]
+    dt = bt.mesh.points.dtype
+    return fitting.CavityVolume.at(bt.mesh, facets, jnp.asarray(volume, dt), spec.sigma, origin)
+
+
 _READERS = dict(
-    reaction=_reaction, moment=_moment, points=_points, positions=_positions, surface=_surface
+    reaction=_reaction,
+    moment=_moment,
+    points=_points,
+    positions=_positions,
+    surface=_surface,
+    volume=_volume,
 )
 
 

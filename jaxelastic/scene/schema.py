@@ -1134,7 +1134,7 @@ class FitInitial(Table):
     bulk: Number | None = Field(default=None, description="[Pa] HGO bulk modulus")
 
 
-FIT_KINDS = ("positions", "points", "reaction", "moment", "surface")
+FIT_KINDS = ("positions", "points", "reaction", "moment", "surface", "volume")
 
 
 class FitObservation(Table):
@@ -1144,11 +1144,13 @@ class FitObservation(Table):
     about ``axis`` through ``origin`` [N·m]); ``points``: NPZ with ``points`` (n, dim)
     rest coordinates [m] and ``displacements`` (n_levels, n, dim) [m]; ``positions``: NPZ
     with ``nodes`` (n,) and ``positions`` (n_levels, n, dim) [m]; ``surface``: NPZ with
-    ``points`` (n_levels, m, dim) measured deformed positions [m]."""
+    ``points`` (n_levels, m, dim) measured deformed positions [m]; ``volume``: CSV with the
+    header ``factor,volume`` (the volume of the ``[[cavity]]`` named by ``cavity`` [m^3];
+    2D: area per unit thickness [m^2])."""
 
-    kind: Literal["positions", "points", "reaction", "moment", "surface"] = Field(
-        description='"positions", "points" (DIC), "reaction" (force), "moment" (torque) or '
-        '"surface" (scan)'
+    kind: Literal["positions", "points", "reaction", "moment", "surface", "volume"] = Field(
+        description='"positions", "points" (DIC), "reaction" (force), "moment" (torque), '
+        '"surface" (scan) or "volume" (a cavity\'s volume: pressure-volume curves)'
     )
     file: Str = Field(description="data file, relative to the scene (layouts above)")
     sigma: Positive = Field(
@@ -1172,6 +1174,9 @@ class FitObservation(Table):
     components: Annotated[tuple[Literal["x", "y", "z"], ...], Field(min_length=1)] | None = Field(
         default=None, description='points: the measured components, e.g. ["x", "y"] (default all)'
     )
+    cavity: Str | None = Field(
+        default=None, description="volume: the name of the measured [[cavity]]"
+    )
 
     @model_validator(mode="after")
     def _kind_keys(self):
@@ -1186,6 +1191,12 @@ class FitObservation(Table):
             raise fail("{at}.direction belongs to kind = 'reaction' only")
         if not moment and (self.axis is not None or self.origin is not None):
             raise fail("{at}: axis and origin belong to kind = 'moment' only")
+        if (self.kind == "volume") != (self.cavity is not None):
+            raise fail(
+                "{at}: kind = 'volume' needs cavity = '<name of a [[cavity]]>'"
+                if self.kind == "volume"
+                else "{at}.cavity belongs to kind = 'volume' only"
+            )
         for k in ("direction", "axis"):
             v = getattr(self, k)
             if v is not None and not any(abs(a) > 0 for a in v):
@@ -1275,6 +1286,13 @@ class FitSpec(Table):
     )
     gtol: Positive = Field(
         default=1e-10, description="stop when the gradient norm (unconstrained variables) is below"
+    )
+    atol: NonNegative = Field(
+        default=1e-12,
+        description='optimizer = "lm": also converged when a Gauss-Newton step predicts a '
+        "decrease of the cost (chi2 / 2, residuals in units of sigma) below this: then the "
+        "parameters lie within sqrt(2 atol) standard errors of the optimum (an exact fit to "
+        "noise-free data is recognised instead of stalling at round-off)",
     )
     case: Annotated[list[FitCase], BeforeValidator(_array_of_tables)] = Field(
         default=[], description="more load cases ([[fit.case]])"
@@ -1442,6 +1460,14 @@ class SceneSpec(Table):
         for k in needed:
             if getattr(fit.initial, k) is None:
                 return f"[fit].initial.{k} is required ([material] has no {k})"
+        names = [c.name for c in self.cavity]
+        for i, case in enumerate(fit.case):
+            for j, o in enumerate(case.observation):
+                if o.cavity is not None and o.cavity not in names:
+                    return (
+                        f"[fit.case][{i}].observation[{j}].cavity {o.cavity!r} names no "
+                        f"[[cavity]] (cavities: {', '.join(repr(n) for n in names) or 'none'})"
+                    )
         return None
 
     @property
