@@ -204,3 +204,30 @@ def test_a_failing_level_is_retried_in_sub_steps_and_never_skipped():
     _, aux = c.predictions(pot.params, c.initial_warm(), c.bind(newton), adj)
     assert not bool(aux.ok) and int(aux.level) == 0
     assert Status(int(aux.status)) != Status.SUCCESS
+
+
+@pytest.mark.extended
+def test_first_evaluation_from_secant_predictions_matches_solves_from_rest():
+    """The first evaluation of a load path starts each level from the secant through the
+    two previous levels' solutions: every level's reaction is the one a solve of that
+    level from the rest shape gives, in fewer Newton steps than solving each level from
+    the previous one's solution."""
+    factors = np.array([0.25, 0.5, 1.0])
+    mesh, pot, bc, right = _plate(1000.0, 0.3, factors)
+    e = jnp.asarray([1.0, 0.0])
+    case = F.LoadPathCase(pot, bc, factors, (F.Reaction(jnp.asarray(right), e, jnp.zeros(3), 1.0),))
+    newton = je.Newton(rtol=1e-11)
+    (force,), aux = case.predictions(
+        pot.params, case.initial_warm(), case.bind(newton), je.ImplicitAdjoint()
+    )
+    assert bool(aux.ok)
+    x_prev, steps = mesh.points, 0
+    for k, s in enumerate(factors):
+        p, b = case.at(jnp.asarray(s), pot.params)
+        x = je.solve(p, b, solver=newton).x
+        R = -je.forces(p.psi, x, mesh, p.params)
+        expect = float(jnp.sum(R[jnp.asarray(right), 0]))
+        np.testing.assert_allclose(float(force[k]), expect, rtol=1e-9)
+        sol = je.solve(p, b, x0=x_prev, solver=newton)
+        x_prev, steps = sol.x, steps + int(sol.stats["steps"])
+    assert int(aux.newton_steps) < steps

@@ -617,3 +617,29 @@ def test_first_line_search_trial_outside_the_loop_changes_nothing(rect, monkeypa
         assert int(sol.stats[key]) == int(ref.stats[key]), key
     np.testing.assert_array_equal(sol.stats["step_history"], ref.stats["step_history"])
     np.testing.assert_allclose(sol.x, ref.x, rtol=0, atol=1e-12)
+
+
+def test_a_warm_start_converges_relative_to_the_reaction_it_carries(rect):
+    """A displacement-driven solve warm-started from a nearby solution meets rtol relative
+    to the reaction on its prescribed dofs (the load it carries), as a solve from rest
+    does, not relative to its own small starting residual; a start that does not meet it
+    is never reported converged."""
+    bc, pull = _uniaxial_bc(rect, 1.2)
+    pot = je.Potential(mesh=rect, params=PARAMS, psi=M.neo_hookean)
+    cold = solve(pot, bc, solver=TIGHT)
+    R = -je.forces(M.neo_hookean, cold.x, rect, PARAMS)
+    reaction = float(jnp.linalg.norm(jnp.where(bc.mask, R, 0.0)))
+    assert reaction > 100.0
+    again = solve(pot, bc, x0=cold.x, solver=DEFAULT)  # converged to rtol: no step
+    assert again.status == Status.SUCCESS and int(again.stats["steps"]) == 0
+    near = pot.replace(params=M.Lame(1.01 * MU, LAM))
+    warm = solve(near, bc, x0=cold.x, solver=DEFAULT)
+    assert warm.status == Status.SUCCESS
+    assert float(warm.stats["residual_reference"]) >= 0.99 * reaction
+    assert float(warm.stats["residual"]) <= DEFAULT.rtol * float(warm.stats["residual_reference"])
+    exact = solve(near, bc, solver=TIGHT)
+    np.testing.assert_allclose(np.asarray(warm.x), np.asarray(exact.x), rtol=0, atol=1e-7)
+    far = pot.replace(params=M.Lame(3.0 * MU, LAM))
+    one = solve(far, bc, x0=cold.x, solver=DEFAULT.replace(max_steps=1), throw=False)
+    assert one.status == Status.MAX_STEPS
+    assert float(one.stats["residual"]) > DEFAULT.rtol * float(one.stats["residual_reference"])

@@ -844,3 +844,21 @@ def test_amg_threaded_solve_equals_serial(monkeypatch):
     x2, its2, st2 = s.solve(b, 1e-8 * np.linalg.norm(b), 200, threads=True)
     assert st1 == st2 == SUCCESS and its1 == its2 > 2
     np.testing.assert_array_equal(x2, x1)
+
+
+def test_a_batch_of_right_hand_sides_is_one_host_solve():
+    """Under jax.vmap (the tangents of jax.jacfwd) the host preconditioner's application is
+    one call with every right-hand side, equal to applying them one by one."""
+    from jaxelastic.solvers.linear.host import _host_preconditioner
+
+    mesh, fixed, Ke, md, rhs = _problem("cantilever")
+    host = _host(mesh, fixed)
+    assert host.factor(Ke, md, TOKEN) == SUCCESS
+    free = jnp.asarray(~fixed.reshape(rhs.shape))
+    M = _host_preconditioner(host, free, jnp.asarray(TOKEN))
+    R = np.stack([rhs, -3.0 * rhs + 1.0])
+    before = host.applications
+    X = np.asarray(jax.jit(jax.vmap(M))(jnp.asarray(R)))
+    assert host.applications == before + 1
+    for r, x in zip(R, X, strict=True):
+        np.testing.assert_allclose(x, np.where(free, host.apply(r, TOKEN), 0.0), rtol=1e-12)

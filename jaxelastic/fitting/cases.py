@@ -278,12 +278,13 @@ class LoadPathCase(Case):
 
     At level ``k`` the potential's external forces are ``s_k·f_ext`` and the prescribed
     displacements ``s_k·(bc.values − X)``; the levels are solved in order, each from the
-    previous iterate's solution of the same level (the previous level's solution on the
-    first evaluation). A level whose solve fails is retried from the previous level's
-    solution in sub-steps (the increment halved up to ``max_cutbacks`` times); a level
-    still failing makes the case fail (``CaseAux.ok`` False, with its status and level),
-    never skipped. The converged solution of every level (one Newton solve from the warm
-    start where that converges) is differentiated by the implicit adjoint
+    previous iterate's solution of the same level (on the first evaluation, the secant
+    through the two previous levels' solutions: the previous level's solution plus its
+    increment scaled to this level's). A level whose solve fails is retried from the
+    previous level's solution in sub-steps (the increment halved up to ``max_cutbacks``
+    times); a level still failing makes the case fail (``CaseAux.ok`` False, with its
+    status and level), never skipped. The converged solution of every level (one Newton
+    solve from the warm start where that converges) is differentiated by the implicit adjoint
     (:func:`~jaxelastic.solvers.adjoint.differentiable_solution`: no second solve), one
     adjoint solve per level (``jax.lax.scan`` over the levels: compiled once whatever
     their number). Cavity pressures (``pot.pressure``) scale like the forces, ``s_k·p``.
@@ -347,7 +348,8 @@ class LoadPathCase(Case):
 
     def initial_warm(self):
         """``(positions (n_levels, n_nodes, dim), valid)``: rest positions, not valid (the
-        first evaluation starts every level from the previous one's solution)."""
+        first evaluation starts every level from the secant through the two previous
+        levels' solutions)."""
         X = jnp.asarray(self.pot.mesh.points)
         return (jnp.broadcast_to(X, (len(self.factors), *X.shape)), jnp.asarray(False))
 
@@ -373,10 +375,14 @@ class LoadPathCase(Case):
         datas = tuple(o.data for o in self.observations)
 
         def level(carry, inp):
-            x_prev, s_prev = carry
+            x_prev, s_prev, x_pp, s_pp = carry
             s, xw, data_k = inp
             pot, bc = self.at(s, params)
-            x0 = jnp.where(valid, xw, x_prev)
+            # without a previous evaluation's solution: the secant through the two previous
+            # levels' solutions (the first level: the rest shape), a first-order predictor
+            ds = s_prev - s_pp
+            t = jnp.where(ds != 0, (s - s_prev) / jnp.where(ds != 0, ds, 1.0), 0.0)
+            x0 = jnp.where(valid, xw, x_prev + t * (x_prev - x_pp))
             x_k, st_k, trials = _reach(self, params, solver, x0, x_prev, s_prev, s)
             found = Solution(x=x_k, status=st_k, stats={})  # (no adaptive terms: no contact)
             sol = differentiable_solution(
@@ -391,11 +397,11 @@ class LoadPathCase(Case):
             preds = tuple(o.predict(state, d) for o, d in zip(obs, data_k, strict=True))
             st = jnp.asarray(sol.status, jnp.int32)
             out = (preds, sol.x, st, trials)
-            return (sol.x, s), out
+            return (sol.x, s, x_prev, s_prev), out
 
         s0 = jnp.zeros((), X.dtype)
         factors = jnp.asarray(self.factors, X.dtype)
-        _, out = jax.lax.scan(level, (X, s0), (factors, xs_warm, datas))
+        _, out = jax.lax.scan(level, (X, s0, X, s0), (factors, xs_warm, datas))
         preds, xs, st, trials = out
         failed = st != Status.SUCCESS
         first = jnp.argmax(failed)

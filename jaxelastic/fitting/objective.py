@@ -74,23 +74,18 @@ def _residual_vector(z, pz: Parametrization, cases, warms, solvers, adjoint):
     return jnp.concatenate(rs), tuple(auxs)
 
 
-@functools.partial(jax.jit, static_argnums=(6,))
-def _residual_jvp(z, dz, pz, cases, warms, solvers, adjoint):
-    """Residuals and their directional derivative along ``dz`` (forward mode)."""
-    fun = lambda z: _residual_vector(z, pz, cases, warms, solvers, adjoint)
-    (r, auxs), (dr, _) = jax.jvp(fun, (z,), (dz,))
-    return r, dr, auxs
+@functools.partial(jax.jit, static_argnums=(5,))
+def _residual_jacobian(z, pz, cases, warms, solvers, adjoint):
+    """Residuals ``(m,)``, their Jacobian ``(m, n)`` with respect to z (forward mode, all
+    n directions at once: one solve per level, its n tangents one multi-right-hand-side
+    solve) and the cases' auxs."""
 
+    def fun(z):
+        r, auxs = _residual_vector(z, pz, cases, warms, solvers, adjoint)
+        return r, (r, auxs)
 
-def _add_counts(total: tuple, auxs: tuple) -> tuple:
-    """``auxs`` (the latest pass's) with the Newton and linear iterations of ``total`` added."""
-    return tuple(
-        a._replace(
-            newton_steps=a.newton_steps + t.newton_steps,
-            linear_iterations=a.linear_iterations + t.linear_iterations,
-        )
-        for t, a in zip(total, auxs, strict=True)
-    )
+    J, (r, auxs) = jax.jacfwd(fun, has_aux=True)(z)
+    return r, J, auxs
 
 
 def fitted_values(pz: Parametrization, z) -> tuple[jax.Array, tuple[str, ...]]:
@@ -244,10 +239,10 @@ class Objective(NamedTuple):
 
     def linearize(self, z, warms=None):
         """``(r (m,), J (m, n), auxs)`` at ``z``: the residuals and their Jacobian with
-        respect to the unconstrained variables, one forward-mode pass through the solves per
-        variable (implicit tangents; the passes after the first start from its solutions).
-        When a solve fails the first pass stops: r and J are then None and ``auxs[i].ok``
-        says which case failed (``auxs`` sum the Newton and linear iterations of the passes).
+        respect to the unconstrained variables, by one forward-mode pass through the solves
+        (:func:`jax.jacfwd`: each solve once, its n implicit tangents one linear solve with
+        n right-hand sides). When a solve fails, r and J are None and ``auxs[i].ok`` says
+        which case failed.
 
         Raises:
             NotImplementedError: a case has no residuals.
@@ -256,41 +251,41 @@ class Objective(NamedTuple):
         warms = self.initial_warms() if warms is None else tuple(warms)
         a = self.adjoint
         fwd = ImplicitAdjoint(rtol=a.rtol, max_iter=a.max_iter, mode="forward")
-        cols: list[np.ndarray] = []
-        r, total = None, ()
-        for j in range(z.shape[0]):
-            dz = jnp.zeros_like(z).at[j].set(1.0)
-            r, dr, auxs = _residual_jvp(z, dz, self.pz, self.cases, warms, self.solvers, fwd)
-            total = _add_counts(total, auxs) if total else tuple(auxs)
-            if not all(bool(a.ok) for a in auxs):
-                return None, None, total
-            warms = tuple(a.warm for a in auxs)
-            cols.append(np.asarray(dr))
-        return np.asarray(r), np.stack(cols, axis=1), total
+        r, J, auxs = _residual_jacobian(z, self.pz, self.cases, warms, self.solvers, fwd)
+        if not all(bool(a.ok) for a in auxs):
+            return None, None, auxs
+        return np.asarray(r), np.asarray(J), auxs
 
-    def residuals_and_jacobian(self, z, warms=None):
+    def residuals_and_jacobian(self, z, warms=None, linearization=None):
         """``(r (m,), J (m, p))`` at ``z``: the residuals and their Jacobian with respect to
-        the fitted parameters in their own units (:func:`fitted_values`), one
-        forward-mode pass through the solves per parameter (implicit tangents).
+        the fitted parameters in their own units (:func:`fitted_values`), by one
+        forward-mode pass through the solves (:meth:`linearize`), or from
+        ``linearization``, ``(r, ∂r/∂z)`` already computed at ``z`` (no solve).
 
         Raises:
             GradientError: a solve failed. NotImplementedError: a case has no residuals.
         """
         z = jnp.asarray(z)
-        r, Jz, auxs = self.linearize(z, warms)
-        if r is None or Jz is None:
-            bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
-            raise GradientError(f"forward solve failed in case(s) {bad} at the optimum")
+        if linearization is None:
+            r, Jz, auxs = self.linearize(z, warms)
+            if r is None or Jz is None:
+                bad = [i for i, a in enumerate(auxs) if not bool(a.ok)]
+                raise GradientError(f"forward solve failed in case(s) {bad} at the optimum")
+        else:
+            r, Jz = (np.asarray(a) for a in linearization)
         D = np.asarray(jax.jacfwd(lambda z: fitted_values(self.pz, z)[0])(z))  # dθ/dz
         return r, np.linalg.solve(D.T, Jz.T).T
 
-    def uncertainty(self, z, warms=None) -> tuple[Uncertainty, tuple[str, ...], np.ndarray, Any]:
+    def uncertainty(
+        self, z, warms=None, linearization=None
+    ) -> tuple[Uncertainty, tuple[str, ...], np.ndarray, Any]:
         """``(Uncertainty, names, values, residuals)`` of the fitted parameters at ``z``
-        (the residual vector of :meth:`residuals_and_jacobian`; Gauss–Newton,
+        (the residual vector of :meth:`residuals_and_jacobian`, from ``linearization``
+        ``(r, ∂r/∂z)`` at ``z`` where given; Gauss–Newton,
         :func:`~jaxelastic.fitting.gauss_newton_uncertainty`; scaled by the reduced χ²
         unless every case's σ are measurement standard deviations; the regulariser is
         not part of it)."""
-        r, J = self.residuals_and_jacobian(z, warms)
+        r, J = self.residuals_and_jacobian(z, warms, linearization)
         vals, names = fitted_values(self.pz, jnp.asarray(z))
         unc = gauss_newton_uncertainty(J, r, known_sigma=self.sigma_known)
         return unc, names, np.asarray(vals), r

@@ -102,6 +102,9 @@ class FitResult(NamedTuple):
             optimum in the order of ``names`` (None when not computed).
         residuals: ``(m,)`` the cases' residual vectors at the optimum, concatenated in
             case order (``√w·(pred − data)/σ`` for measurements), with the uncertainty.
+        evaluations: trial points evaluated (each a pass through every case's solves: a
+            loss and gradient, or a Levenberg–Marquardt linearisation), line-search and
+            rejected trials included; the uncertainty's pass, if any, not.
     """
 
     material: Any
@@ -123,6 +126,7 @@ class FitResult(NamedTuple):
     names: tuple = ()
     uncertainty: Uncertainty | None = None
     residuals: np.ndarray | None = None
+    evaluations: int = 0
 
     @property
     def params(self):
@@ -163,12 +167,17 @@ class _Tracker:
     def __init__(self, obj: Objective):
         self.obj = obj
         self.counts = np.zeros((2, len(obj.cases)), int)  # Newton / linear its this iterate
+        self.evaluations = 0  # trial points evaluated
         self.hist = dict(loss=[], p=[], g=[], nw=[], lin=[])
         self.failures: list[dict] = []
+        # (z, r, ∂r/∂z) at the last accepted Levenberg–Marquardt point: the uncertainty's
+        # Jacobian at the optimum, without another pass through the solves
+        self.linearization: tuple | None = None
 
     def evaluate(self, z, warms):
         """``(loss, auxs, grad, ok)`` at z; ok: every solve converged, all finite."""
         (f, auxs), g = self.obj.value_and_grad(z, warms, check=False)
+        self.evaluations += 1
         self.counts[0] += [int(a.newton_steps) for a in auxs]
         self.counts[1] += [int(a.linear_iterations) for a in auxs]
         solved = [bool(a.ok) for a in auxs]
@@ -181,6 +190,7 @@ class _Tracker:
         """``(r, J, auxs, ok)`` at z (:meth:`Objective.linearize`); ok: every solve
         converged (r and J are None otherwise)."""
         r, J, auxs = self.obj.linearize(z, warms)
+        self.evaluations += 1
         self.counts[0] += [int(a.newton_steps) for a in auxs]
         self.counts[1] += [int(a.linear_iterations) for a in auxs]
         solved = [bool(a.ok) for a in auxs]
@@ -317,6 +327,7 @@ def _levenberg_marquardt(tr: _Tracker, settings: LMSettings, z0, callback, max_i
         nonlocal warms, failed, before, k
         warms, failed, before = trial_warms, 0, failed
         r, J = np.asarray(s.r), np.asarray(s.J)
+        tr.linearization = (np.asarray(s.z), r, J)
         f = float(r @ r)  # the loss Σ w_c·loss_c = ‖r‖²
         first = int(s.iteration) == 0
         if not first:
@@ -424,11 +435,13 @@ def fit(
             when a forward solve fails; ``"lm"`` or an
             :class:`~jaxelastic.fitting.LMSettings`: Levenberg–Marquardt on the cases'
             residuals (every case needs ``residuals()``; no regulariser), each trial point
-            linearised by one forward-mode pass through the solves per fitted value
-            (:meth:`Objective.linearize`), stopped by the settings' tests (``rtol``,
-            ``atol``, ``max_rejections``; :mod:`jaxelastic.fitting.least_squares`), not by
-            ``gtol``/``ftol``/``xtol``. Few parameters, a least-squares χ²: it converges
-            quadratically near a well-fitting optimum where L-BFGS crawls on a flat one.
+            linearised by one forward-mode pass through the solves (every fitted
+            value's tangent at once, :meth:`Objective.linearize`), stopped by the
+            settings' tests (``rtol``, ``atol``, ``max_rejections``;
+            :mod:`jaxelastic.fitting.least_squares`), not by ``gtol``/``ftol``/``xtol``.
+            Few parameters, a least-squares χ²: it converges quadratically near a
+            well-fitting optimum where L-BFGS crawls on a flat one, and its Jacobian at
+            the optimum is the uncertainty's.
         learning_rate: Adam's step in the unconstrained variables.
         max_iter: maximum optimiser iterations (Levenberg–Marquardt: accepted and
             rejected steps together).
@@ -446,8 +459,9 @@ def fit(
             (params in ``init``'s structure); return True to stop there (stop reason
             ``"callback"``, e.g. on Ctrl-C, keeping every iterate so far).
         uncertainty: compute the Gauss–Newton uncertainty at the optimum
-            (:attr:`FitResult.uncertainty`; one forward-mode pass through the solves per
-            fitted value); default None: when every case weighs its residuals by
+            (:attr:`FitResult.uncertainty`; one forward-mode pass through the solves, or
+            none after Levenberg–Marquardt, whose Jacobian at the optimum it reuses);
+            default None: when every case weighs its residuals by
             measurement σ (e.g. :class:`~jaxelastic.fitting.LoadPathCase`).
 
     Long because: the docstring documents 19 arguments; the body is ten lines.
@@ -481,7 +495,9 @@ def fit(
         )
     unc = r = None
     if uncertainty or (uncertainty is None and obj.sigma_known):
-        unc, _, _, r = obj.uncertainty(z, warms)
+        lin = tr.linearization
+        same = lin is not None and np.array_equal(lin[0], np.asarray(z))
+        unc, _, _, r = obj.uncertainty(z, warms, lin[1:] if same and lin is not None else None)
     res = _result(tr, z, k, reason, warms, time.perf_counter() - t_start)
     return res._replace(uncertainty=unc, residuals=r)
 
@@ -525,4 +541,5 @@ def _result(tr: _Tracker, z, k: int, reason: str, warms, wall: float) -> FitResu
         wall_time=wall,
         failures=tuple(tr.failures),
         names=fitted_values(tr.obj.pz, jnp.asarray(z))[1],
+        evaluations=tr.evaluations,
     )

@@ -88,8 +88,10 @@ def _host_factor(backend: HostLinearSolver, Ke, md, token):
 
 def _host_apply(backend: HostLinearSolver, r, token):
     out = jax.ShapeDtypeStruct(r.shape, r.dtype)
-    # the factorisation is not batched: a batch of right-hand sides is applied one by one
-    return jax.pure_callback(backend.apply, out, r, token, vmap_method="sequential")
+    # a batch of right-hand sides (e.g. the tangents of jax.jacfwd) goes to the host as
+    # one (batch, n_nodes, dim) array: one multi-right-hand-side solve of the shared
+    # factorisation (HostLinearSolver.apply takes leading axes), not one call each
+    return jax.pure_callback(backend.apply, out, r, token, vmap_method="expand_dims")
 
 
 def _host_preconditioner(backend: HostLinearSolver, free, token):

@@ -30,8 +30,10 @@ Each iteration:
    (:func:`~jaxelastic.solvers.newton.iteration.residual_floor`, reported as
    ``stats["residual_floor"]``) once a full step reduces the residual by less than half
    (at once for a quadratic Π), or a full step below ``xtol`` times the body's size;
-   where ``‖g‖_ref`` is the largest free residual seen, ‖f_ext‖, or the largest
-   right-hand side ``‖g_f + K_fD Δ_D‖`` (the force induced by a Dirichlet motion).
+   where ``‖g‖_ref`` is the largest free residual seen, ‖f_ext‖, the reaction on the
+   prescribed dofs at the start (the load a warm start from a nearby solution carries),
+   or the largest right-hand side ``‖g_f + K_fD Δ_D‖`` (the force induced by a
+   Dirichlet motion).
 5. Terms with an adaptive stiffness (contact's barrier κ, opt-in by
    ``kappa_max_factor > 1``) adapt after each accepted iterate
    (:mod:`~jaxelastic.solvers.newton.terms`); the solve then continues on the stiffer

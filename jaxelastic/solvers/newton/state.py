@@ -35,8 +35,8 @@ class NewtonState(NamedTuple):
         energy: Π(x) (``+inf`` where undefined).
         k: iterations done; status: int32, ``RUNNING`` (−1) or a
             :class:`~jaxelastic.solvers.results.Status`.
-        ref: the residual's reference scale (largest free residual, ‖f_ext‖ or Dirichlet
-            right-hand side seen) [force].
+        ref: the residual's reference scale (largest free residual, ‖f_ext‖, reaction on
+            the prescribed dofs at ``x0`` or Dirichlet right-hand side seen) [force].
         hist: ``(max_steps + 1,)`` free residual norms; lin_hist: ``(max_steps,)`` linear
             iterations; alpha_hist: ``(max_steps,)`` accepted step lengths (NaN: none).
         cuts: line-search halvings; neg: negative-curvature linear solves; short: linear
@@ -83,7 +83,10 @@ def init(s: Newton, pot: Potential, bc: Dirichlet, x0) -> NewtonState:
     rn0 = norm(g0 * fm)
     dn0 = norm(jnp.where(mask, bc.values - x0, 0.0))
     ref0 = norm(pot.f_ext * fm) if pot.f_ext is not None else jnp.zeros((), dtype)
-    ref = jnp.maximum(ref0, rn0)
+    # the reaction on the prescribed dofs is the load a displacement-driven body carries:
+    # a warm start (a nearby solution) is converged relative to it, as a solve from rest
+    # is, not relative to its own small residual
+    ref = jnp.maximum(jnp.maximum(ref0, norm(g0 * (1.0 - fm))), rn0)
     st0 = status_of(s, rn0, dn0, ref, 0)
     inverted = jnp.where(min_J(pot, x0) <= 0, Status.INVERTED, Status.NONFINITE)
     st0 = jnp.where(jnp.isfinite(e0), st0, inverted)
