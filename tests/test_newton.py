@@ -619,6 +619,7 @@ def test_first_line_search_trial_outside_the_loop_changes_nothing(rect, monkeypa
     np.testing.assert_allclose(sol.x, ref.x, rtol=0, atol=1e-12)
 
 
+@pytest.mark.extended
 def test_a_warm_start_converges_relative_to_the_reaction_it_carries(rect):
     """A displacement-driven solve warm-started from a nearby solution meets rtol relative
     to the reaction on its prescribed dofs (the load it carries), as a solve from rest
