@@ -28,6 +28,7 @@ __all__ = [
     "newton_rhs",
     "descent",
     "line_search",
+    "NATURAL_MONOTONICITY",
     "residual_floor",
     "status_of",
     "near_tol",
@@ -154,25 +155,43 @@ def descent(system: NewtonSystem, g, dD, res: Solution):
     return d_free + dD
 
 
-def line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near, floor):
+def line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near, floor, correction=None):
     """Backtracking from α = 1, or from the smaller bound of the potential's terms
     (:func:`~jaxelastic.solvers.newton.terms.step_bound`; contact: the CCD bound
-    ``min(1, 0.8·τ*)``): ``(α, x_t, Π_t, g_t, accepted, halvings)``."""
+    ``min(1, 0.8·τ*)``): ``(α, x_t, Π_t, g_t, accepted, halvings)``.
+
+    ``correction``: ``None`` for a potential (Armijo on Π), or for a non-conservative
+    load the simplified Newton correction ``r ↦ ‖K_k⁻¹ r‖`` with this step's tangent
+    ``K_k``: a trial is then accepted by the natural monotonicity test
+    (:data:`NATURAL_MONOTONICITY`)."""
     mask, xD = bc.mask, bc.values
     fm = (~mask).astype(x.dtype)
     rn = norm(g * fm)
     dn = norm(jnp.where(mask, xD - x, 0.0))
     slope = jnp.sum(g * step)
+    sn = norm(step * fm)
 
     def trial(alpha):
         xt = x + alpha * step
         xt = jnp.where(mask & (alpha == 1.0), xD, xt)
         et, gt = value_and_grad(s, pot, xt)
-        armijo = et <= e0 + s.armijo * alpha * slope
-        # near the solution Π's round-off hides the decrease; at the residual's round-off
-        # floor its norm is noise, so a trial that stays below the floor is accepted too
-        residual_ok = near & (dn == 0) & (norm(gt * fm) < jnp.maximum(rn, floor))
-        accept = jnp.isfinite(et) & ((dn > 0) | armijo | residual_ok)
+        rt = norm(gt * fm)
+        if correction is None:
+            armijo = et <= e0 + s.armijo * alpha * slope
+            # near the solution Π's round-off hides the decrease; at the residual's
+            # round-off floor its norm is noise, so a trial that stays below the floor is
+            # accepted too
+            residual_ok = near & (dn == 0) & (rt < jnp.maximum(rn, floor))
+        else:  # ‖K_k⁻¹ r(x_t)‖ ≤ (1 − α/4)‖Δ‖, solved only where the floor does not decide
+            residual_ok = rt <= floor
+
+            def natural():
+                return correction(gt * fm) <= (1.0 - NATURAL_MONOTONICITY * alpha) * sn
+
+            armijo = lax.cond(
+                (dn == 0) & ~residual_ok & jnp.isfinite(rt), natural, lambda: jnp.asarray(False)
+            )
+        accept = jnp.isfinite(et) & jnp.isfinite(rt) & ((dn > 0) | armijo | residual_ok)
         return xt, et, gt, accept
 
     def cond(c):
@@ -190,6 +209,18 @@ def line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near, floor):
         inf = jnp.asarray(jnp.inf, x.dtype)
         start = (2.0 * alpha0, x, inf, g, jnp.asarray(False), jnp.asarray(-1, jnp.int32))
     return lax.while_loop(cond, body, start)
+
+
+NATURAL_MONOTONICITY = 0.25
+"""A trial ``x + αΔ`` of a non-conservative (follower) Newton step is accepted when its
+simplified Newton correction, solved with the step's own tangent, is shorter than the
+step by this margin: ``‖K_k⁻¹ r(x + αΔ)‖ ≤ (1 − α/4)‖Δ‖`` (the restricted natural
+monotonicity test of Deuflhard, *Newton Methods for Nonlinear Problems*, 2004, §3.3).
+Without a potential to decrease, the residual's own norm is the obvious merit, but it is
+not affine covariant: it is dominated by the stiff (axial, volumetric) modes, whose
+residual grows quadratically along the linearised step of a rotating body, so a test on
+it cut every step of the follower cantilever to α = 1/64–1/128 (124 steps at p = 2
+against 12 with this test)."""
 
 
 STRAIGHT_TRIAL_MIN_CELLS = 50_000
