@@ -44,6 +44,7 @@ from ..results import RUNNING, Solution, Status
 from . import levenberg, terms
 from .iteration import (
     STALL,
+    Correction,
     descent,
     energy_scale,
     exact_tangent,
@@ -178,10 +179,14 @@ def finish(
     floor = residual_floor(pot, system, x, fm)
     correction = None
     if lstate is not None and not is_conservative(pot.pressure):
+        tiny = jnp.finfo(x.dtype).tiny
 
-        def correction(r):  # ‖K_k⁻¹ r‖ to the step's relative forcing
-            tol = prep.tol / jnp.maximum(prep.bn, jnp.finfo(x.dtype).tiny) * norm(r)
+        def simplified(r):  # ‖K_k⁻¹ r‖ to the step's relative forcing
+            tol = prep.tol / jnp.maximum(prep.bn, tiny) * norm(r)
             return norm(linear_step(s, lstate, system, -r, tol).x)
+
+        eta = jnp.clip(lin.stats["residual"] / jnp.maximum(prep.bn, tiny), 0.0, 1.0)
+        correction = Correction(simplified, eta.astype(x.dtype))
 
     alpha, xt, et, gt, acc, cuts = line_search(
         s, pot, bc, x, g, state.energy, d, near, floor, correction
@@ -357,9 +362,7 @@ def _loop_linear(s: Newton, lstate, pot, bc, state: NewtonState, Ke, rhs, tol, p
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _loop_finish(
-    s: Newton, lstate, pot, bc, state: NewtonState, length, Ke, rhs, tol, bn, lin, ph
-):
+def _loop_finish(s: Newton, lstate, pot, bc, state: NewtonState, length, Ke, rhs, tol, bn, lin, ph):
     p = terms.with_states(pot, state.terms)
     # (the operator is applied here only by a non-conservative load's line search)
     system = _system(s, p, bc, state, Ke, ph)
