@@ -107,7 +107,8 @@ def prepare(s: Newton, pot: Potential, bc: Dirichlet, state: NewtonState, Ke=Non
 def _regularized(s: Newton, pot: Potential) -> bool:
     """Whether the Levenberg–Marquardt safeguard runs: ``s.regularize``, and a potential
     whose loads are conservative (it adapts λ by the energy's actual against predicted
-    decrease; a follower load has no energy, and there its residual line search leads)."""
+    decrease; a follower load has no energy, and there its line search on the simplified
+    Newton correction leads)."""
     return s.regularize and is_conservative(pot.pressure)
 
 
@@ -159,7 +160,7 @@ def finish(
     length,
     prep: Prepared,
     lin,
-    lstate: LinearState | None = None,
+    lstate: LinearState,
 ) -> NewtonState:
     """The rest of an iteration once the linear solve ``lin`` is done: direction, line
     search, new state and status, then the terms' adaptation (``lstate``: the linear
@@ -174,11 +175,11 @@ def finish(
     near = jnp.abs(jnp.sum(g * d)) <= near_tol(x.dtype) * jnp.maximum(
         escale, jnp.finfo(x.dtype).tiny
     )
-    if not is_conservative(pot.pressure):  # a follower load: no energy to decrease, so the
-        near = jnp.asarray(True)  # line search accepts a step on the residual's decrease
     floor = residual_floor(pot, system, x, fm)
     correction = None
-    if lstate is not None and not is_conservative(pot.pressure):
+    if not is_conservative(pot.pressure):  # a follower load: no energy to decrease; the
+        # line search tests the simplified Newton correction (or the residual's decrease)
+        near = jnp.asarray(True)
         tiny = jnp.finfo(x.dtype).tiny
 
         def simplified(r):  # ‖K_k⁻¹ r‖ to the step's relative forcing
