@@ -163,7 +163,7 @@ class Correction(NamedTuple):
     """The simplified Newton correction of a non-conservative load's line search:
     ``norm(r) = ‖K_k⁻¹ r‖`` [length] with the step's own tangent ``K_k`` (one linear
     solve), and ``eta``, the relative residual the step's linear solve reached (the
-    inexact Newton direction's slope on ½‖r‖² is ``−(1 − η)‖r‖²``)."""
+    inexact Newton direction's slope on ½‖r‖² is at most ``−(1 − η)‖r‖²``)."""
 
     norm: Callable[[jax.Array], jax.Array]
     eta: jax.Array
@@ -198,8 +198,8 @@ def line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near, floor, corr
             residual_ok = near & (dn == 0) & (rt < jnp.maximum(rn, floor))
             accept = jnp.isfinite(et) & ((dn > 0) | armijo | residual_ok)
         else:  # ‖K_k⁻¹ r(x_t)‖ ≤ (1 − α/4)‖Δ‖, solved only where the residual's
-            # sufficient decrease (Armijo on ½‖r‖², slope −(1 − η)‖r‖² of an inexact
-            # Newton direction) or its floor does not decide already
+            # sufficient decrease for an inexact Newton direction, ‖r_t‖ ≤ (1 − cα(1 − η))‖r‖
+            # (Eisenstat & Walker 1994, SIAM J. Optim. 4:393), or its floor does not decide
             eta, simplified = correction.eta, correction.norm
             residual_ok = (rt <= floor) | (rt <= (1.0 - s.armijo * alpha * (1.0 - eta)) * rn)
 
