@@ -207,9 +207,11 @@ def line_search(s: Newton, pot, bc: Dirichlet, x, g, e0, step, near, floor, corr
                 return simplified(gt * fm) <= (1.0 - NATURAL_MONOTONICITY * alpha) * sn
 
             finite = jnp.isfinite(et) & jnp.isfinite(rt)
-            monotone = lax.cond(
-                finite & (dn == 0) & ~residual_ok, natural, lambda: jnp.asarray(False)
-            )
+            undecided = finite & (dn == 0) & ~residual_ok
+            if getattr(pot.mesh, "halo", None) is not None:  # no collectives inside a
+                monotone = undecided & natural()  # conditional (see _computed_once)
+            else:
+                monotone = lax.cond(undecided, natural, lambda: jnp.asarray(False))
             accept = finite & ((dn > 0) | monotone | residual_ok)
         return xt, et, gt, accept
 
