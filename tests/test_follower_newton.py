@@ -110,13 +110,13 @@ def test_true_tangent_operator_is_the_jacobian_of_the_residual():
 def test_true_tangent_converges_quadratically_to_the_quasi_newton_solution():
     """On a small follower cantilever the true tangent converges quadratically
     (``r_{k+1} ≤ C r_k²`` over the last steps above round-off, relative residuals) in at
-    most 8 Newton steps, where the symmetric quasi-Newton needs at least 12 (linear
-    convergence), and both reach the same equilibrium."""
+    most 8 Newton steps, where the symmetric quasi-Newton needs at least twice as many
+    (linear convergence), and both reach the same equilibrium."""
     m, bc, pot = _cantilever(1.0)
     exact = je.solve(pot, bc, solver=je.Newton(rtol=1e-12, tangent="auto"))
     quasi = je.solve(pot, bc, solver=je.Newton(rtol=1e-12, tangent="symmetric", max_steps=100))
     he, hq = _history(exact), _history(quasi)
-    assert len(he) - 1 <= 8 and len(hq) - 1 >= 12, (he, hq)
+    assert len(he) - 1 <= 8 and len(hq) - 1 >= 2 * (len(he) - 1), (he, hq)
 
     def ratios(h):  # r_{k+1} / r_k² (relative residuals) above the round-off floor
         rel = h / h[0]
@@ -145,9 +145,14 @@ def test_true_tangent_solves_a_load_where_the_quasi_newton_stalls():
     assert not quasi.ok
     exact = je.solve(pot, bc, solver=je.Newton(rtol=1e-10, max_steps=200))
     h = _history(exact)
-    assert int(exact.stats["steps"]) < 100
+    # (natural monotonicity line search: 20 steps; 40 with Armijo on a pseudo-energy)
+    assert int(exact.stats["steps"]) <= 25
     rel = h / h[0]
-    last = [rel[k + 1] / rel[k] ** 2 for k in range(len(rel) - 1) if 1e-8 < rel[k] < 1e-2]
+    # (a last step that lands below 1e-8 is limited by the linear solve's tolerance,
+    # 0.1·rtol·ref, not by Newton's convergence)
+    last = [
+        rel[k + 1] / rel[k] ** 2 for k in range(len(rel) - 1) if rel[k] < 1e-2 < 1e6 * rel[k + 1]
+    ]
     assert last and max(last) < 10.0, rel
     assert float(exact.x[:, 2].max()) > 4.0
 
@@ -164,3 +169,43 @@ def test_capped_gmres_is_reported_in_the_newton_statistics():
     assert int(res.stats["linear_unconverged"]) == steps > 0
     assert int(res.status) != Status.SUCCESS
     assert float(res.stats["residual"]) > float(res.stats["tolerance"])
+
+
+@pytest.mark.extended  # three follower solves, ~13 s cold on a loaded 2-core machine
+def test_follower_line_search_takes_full_steps_from_a_neighbouring_state():
+    """A load step p = 1 → 2 of the 6 × 1 × 1 follower cantilever started from the
+    converged p = 1 state converges in at most 10 Newton steps, nearly all full (the line
+    search's natural monotonicity test on the simplified Newton correction; the Armijo test
+    on a pseudo-energy took 78 steps at α = 1/64 here), to the same equilibrium as from
+    rest, with SUCCESS only at the tolerance."""
+    s = je.Newton(rtol=1e-10, max_steps=100)
+    _, bc, pot1 = _cantilever(1.0, n=6)
+    _, _, pot2 = _cantilever(2.0, n=6)
+    start = je.solve(pot1, bc, solver=s)
+    ramp = je.solve(pot2, bc, solver=s, x0=start.x)
+    k = int(ramp.stats["steps"])
+    alpha = np.asarray(ramp.stats["step_history"])[:k]
+    assert int(ramp.status) == Status.SUCCESS and k <= 10, (k, alpha)
+    assert np.sum(alpha == 1.0) >= k - 2, alpha
+    assert float(ramp.stats["residual"]) <= float(ramp.stats["tolerance"])
+    rest = je.solve(pot2, bc, solver=s)
+    assert int(rest.stats["steps"]) <= 16
+    scale = float(np.abs(np.asarray(rest.x) - np.asarray(pot2.mesh.points)).max())
+    assert np.abs(np.asarray(ramp.x) - np.asarray(rest.x)).max() <= 1e-8 * scale
+
+
+def test_follower_line_search_leaves_conservative_solves_unchanged():
+    """A conservative solve (a tip load on the neo-Hookean cantilever, CG and direct) keeps
+    its energy line search: the same 11 Newton steps, 4 cut-backs and residual history as
+    with the energy line search alone (golden values)."""
+    m = je.box(6, 1, 1, size=(6.0, 1.0, 1.0))
+    bc = L.fix(m, L.nodes_on_plane(m, 0, 0.0))
+    f = np.zeros(m.points.shape)
+    f[np.asarray(m.points)[:, 0] > 5.9, 2] = 3.0
+    pot = je.Potential(m, je.Lame(100.0, 150.0), psi=je.neo_hookean, f_ext=jnp.asarray(f))
+    golden = [6.0, 60.881168770096075, 34.404510819442294, 65.18577242867187, 8.673436170729314]
+    res = je.solve(pot, bc, solver=je.Newton(rtol=1e-10))
+    assert int(res.stats["steps"]) == 11 and int(res.stats["line_search_cutbacks"]) == 4
+    assert int(res.stats["regularized"]) == 0
+    h = np.asarray(res.stats["residual_history"])[:5]
+    np.testing.assert_allclose(h, golden, rtol=1e-9)

@@ -44,6 +44,7 @@ from ..results import RUNNING, Solution, Status
 from . import levenberg, terms
 from .iteration import (
     STALL,
+    Correction,
     descent,
     energy_scale,
     exact_tangent,
@@ -106,7 +107,8 @@ def prepare(s: Newton, pot: Potential, bc: Dirichlet, state: NewtonState, Ke=Non
 def _regularized(s: Newton, pot: Potential) -> bool:
     """Whether the Levenberg–Marquardt safeguard runs: ``s.regularize``, and a potential
     whose loads are conservative (it adapts λ by the energy's actual against predicted
-    decrease; a follower load has no energy, and there its residual line search leads)."""
+    decrease; a follower load has no energy, and there its line search on the simplified
+    Newton correction leads)."""
     return s.regularize and is_conservative(pot.pressure)
 
 
@@ -151,10 +153,19 @@ def linear_step(s: Newton, lstate: LinearState, system: NewtonSystem, rhs, tol) 
 
 
 def finish(
-    s: Newton, pot: Potential, bc: Dirichlet, state: NewtonState, length, prep: Prepared, lin
+    s: Newton,
+    pot: Potential,
+    bc: Dirichlet,
+    state: NewtonState,
+    length,
+    prep: Prepared,
+    lin,
+    lstate: LinearState,
 ) -> NewtonState:
     """The rest of an iteration once the linear solve ``lin`` is done: direction, line
-    search, new state and status, then the terms' adaptation."""
+    search, new state and status, then the terms' adaptation (``lstate``: the linear
+    solver's state, for the simplified Newton corrections of a non-conservative load's
+    line search)."""
     x, g, k = state.x, state.g, state.k
     system = prep.system
     mask, xD = bc.mask, bc.values
@@ -164,10 +175,23 @@ def finish(
     near = jnp.abs(jnp.sum(g * d)) <= near_tol(x.dtype) * jnp.maximum(
         escale, jnp.finfo(x.dtype).tiny
     )
-    if not is_conservative(pot.pressure):  # a follower load: no energy to decrease, so the
-        near = jnp.asarray(True)  # line search accepts a step on the residual's decrease
     floor = residual_floor(pot, system, x, fm)
-    alpha, xt, et, gt, acc, cuts = line_search(s, pot, bc, x, g, state.energy, d, near, floor)
+    correction = None
+    if not is_conservative(pot.pressure):  # a follower load: no energy to decrease; the
+        # line search tests the simplified Newton correction (or the residual's decrease)
+        near = jnp.asarray(True)
+        tiny = jnp.finfo(x.dtype).tiny
+
+        def simplified(r):  # ‖K_k⁻¹ r‖ to the step's relative forcing
+            tol = prep.tol / jnp.maximum(prep.bn, tiny) * norm(r)
+            return norm(linear_step(s, lstate, system, -r, tol).x)
+
+        eta = jnp.clip(lin.stats["residual"] / jnp.maximum(prep.bn, tiny), 0.0, 1.0)
+        correction = Correction(simplified, eta.astype(x.dtype))
+
+    alpha, xt, et, gt, acc, cuts = line_search(
+        s, pot, bc, x, g, state.energy, d, near, floor, correction
+    )
     x_new = jnp.where(acc, xt, x)
     g_new = jnp.where(acc, gt, g)
     rn = norm(g_new * fm)
@@ -257,7 +281,7 @@ def step(
     p = terms.with_states(pot, state.terms)
     prep = prepare(s, p, bc, state)
     lin = linear_step(s, lstate, prep.system, prep.rhs, prep.tol)
-    return finish(s, p, bc, state, length, prep, lin)
+    return finish(s, p, bc, state, length, prep, lin, lstate)
 
 
 def _traced_minimize(s: Newton, lstate: LinearState, pot: Potential, bc: Dirichlet, x0) -> Solution:
@@ -339,11 +363,12 @@ def _loop_linear(s: Newton, lstate, pot, bc, state: NewtonState, Ke, rhs, tol, p
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _loop_finish(s: Newton, pot, bc, state: NewtonState, length, Ke, rhs, tol, bn, lin, ph):
+def _loop_finish(s: Newton, lstate, pot, bc, state: NewtonState, length, Ke, rhs, tol, bn, lin, ph):
     p = terms.with_states(pot, state.terms)
-    system = _system(s, p, bc, state, Ke, ph)  # the operator is not applied here
+    # (the operator is applied here only by a non-conservative load's line search)
+    system = _system(s, p, bc, state, Ke, ph)
     dD = jnp.where(bc.mask, bc.values - state.x, 0.0)
-    return finish(s, p, bc, state, length, Prepared(system, dD, rhs, tol, bn), lin)
+    return finish(s, p, bc, state, length, Prepared(system, dD, rhs, tol, bn), lin, lstate)
 
 
 _solution_jit = jax.jit(solution, static_argnums=2)
@@ -412,7 +437,7 @@ def _python_loop(s: Newton, lstate, pot: Potential, bc: Dirichlet, x0) -> Soluti
         # refresh the terms for the coming step (self-contact: a new broad phase)
         d = jnp.where(bc.mask, bc.values - state.x, lin.x)
         pot = terms.refreshed(pot, state.x, d)
-        state = _loop_finish(s, pot, bc, state, length, Ke, rhs, tol, bn, lin, ph)
+        state = _loop_finish(s, lstate, pot, bc, state, length, Ke, rhs, tol, bn, lin, ph)
         # drop this step's element Hessians before the next _prepare makes new ones:
         # otherwise two (n_cells, m, m) arrays are live at its peak (168 MB each at 146k tets)
         big = Ke is not None and Ke.nbytes >= TRIM_BYTES

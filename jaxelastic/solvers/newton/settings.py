@@ -65,7 +65,9 @@ class Newton:
             (settings only: the state they need, a factorisation or a hierarchy, is made by
             :func:`~jaxelastic.solvers.linear.init_linear` and passed explicitly).
         ls_max: maximum halvings in the line search.
-        armijo: sufficient-decrease constant.
+        armijo: sufficient-decrease constant (of Π; with a follower load, which has no
+            Π, of the residual norm, before the line search's natural monotonicity test:
+            :data:`~jaxelastic.solvers.newton.iteration.NATURAL_MONOTONICITY`).
         require_positive_J: also reject trial steps where any element has J ≤ 0 (for user
             materials that return finite garbage there); the built-in neo-Hookean returns
             +inf, which the line search rejects anyway.
