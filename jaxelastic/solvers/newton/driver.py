@@ -171,23 +171,11 @@ def finish(
     mask, xD = bc.mask, bc.values
     fm = (~mask).astype(x.dtype)
     d = descent(system, g, prep.dD, lin)
-    escale = jnp.maximum(jnp.abs(state.energy), energy_scale(pot, x, system.Ke))
-    near = jnp.abs(jnp.sum(g * d)) <= near_tol(x.dtype) * jnp.maximum(
-        escale, jnp.finfo(x.dtype).tiny
-    )
+    near = _near_solution(pot, system, state, d)
     floor = residual_floor(pot, system, x, fm)
-    correction = None
-    if not is_conservative(pot.pressure):  # a follower load: no energy to decrease; the
-        # line search tests the simplified Newton correction (or the residual's decrease)
-        near = jnp.asarray(True)
-        tiny = jnp.finfo(x.dtype).tiny
-
-        def simplified(r):  # ‖K_k⁻¹ r‖ to the step's relative forcing
-            tol = prep.tol / jnp.maximum(prep.bn, tiny) * norm(r)
-            return norm(linear_step(s, lstate, system, -r, tol).x)
-
-        eta = jnp.clip(lin.stats["residual"] / jnp.maximum(prep.bn, tiny), 0.0, 1.0)
-        correction = Correction(simplified, eta.astype(x.dtype))
+    correction = _follower_correction(s, lstate, pot, prep, lin, x)
+    if correction is not None:  # a follower load: no energy to decrease; the line
+        near = jnp.asarray(True)  # search tests the correction or the residual's decrease
 
     alpha, xt, et, gt, acc, cuts = line_search(
         s, pot, bc, x, g, state.energy, d, near, floor, correction
@@ -199,15 +187,7 @@ def finish(
     # bn = ‖g_f + K_fD Δ_D‖ is the force a Dirichlet motion induces: the reference of a
     # purely displacement-driven solve (whose free residual is 0 at the rest shape)
     ref = jnp.maximum(jnp.maximum(state.ref, rn), prep.bn)
-    # the floor only counts once a full step no longer reduces the residual (or the
-    # potential is quadratic, where one exact step is the answer)
-    stalled = ((alpha == 1.0) & (rn >= STALL * state.hist[k])) | is_quadratic(pot)
-    st = status_of(s, rn, dn, ref, k + 1, jnp.where(stalled, floor, 0.0))
-    # (a Newton step, not one the Levenberg-Marquardt shift shortened)
-    full = acc & (alpha == 1.0) & (dn == 0) & (state.lam == 0)
-    tiny_step = full & (jnp.max(jnp.abs(d)) <= s.xtol * length)
-    st = jnp.where((st == RUNNING) & tiny_step & jnp.isfinite(rn), Status.SUCCESS, st)
-    st = jnp.where(acc, st, Status.LINE_SEARCH_FAILED)
+    st = _step_status(s, pot, state, rn, dn, ref, floor, alpha, acc, d, length)
     best, since = levenberg.progress(state.best, state.since, rn, dn == 0)
     shift = levenberg.adapt(
         state.lam,
@@ -228,8 +208,7 @@ def finish(
         st = jnp.where(shift.rescue & (k + 1 >= s.max_steps), Status.MAX_STEPS, st)
     its = lin.stats["iterations"].astype(jnp.int32)
     neg = lin.status == Status.NEGATIVE_CURVATURE
-    # a linear solve that stopped short of its tolerance (the step is its best iterate)
-    short = (lin.status == Status.MAX_STEPS) | (lin.status == Status.NONFINITE)
+    short = (lin.status == Status.MAX_STEPS) | (lin.status == Status.NONFINITE)  # inexact
     new = state._replace(
         x=x_new,
         g=g_new,
@@ -252,6 +231,48 @@ def finish(
         since=since,
     )
     return _adapt(s, pot, new)
+
+
+def _near_solution(pot: Potential, system, state: NewtonState, d):
+    """Whether the predicted decrease ``|gᵀd|`` is below Π's round-off scale
+    (:func:`~.iteration.near_tol`): the line search then accepts on the residual."""
+    x = state.x
+    escale = jnp.maximum(jnp.abs(state.energy), energy_scale(pot, x, system.Ke))
+    tiny = jnp.finfo(x.dtype).tiny
+    return jnp.abs(jnp.sum(state.g * d)) <= near_tol(x.dtype) * jnp.maximum(escale, tiny)
+
+
+def _follower_correction(s: Newton, lstate, pot: Potential, prep: Prepared, lin, x):
+    """The simplified Newton correction ``r ↦ ‖K_k⁻¹ r‖`` (solved to the step's relative
+    forcing, with its forcing term η) that a follower load's line search tests, or None
+    for a conservative potential (whose line search decreases the energy)."""
+    if is_conservative(pot.pressure):
+        return None
+    tiny = jnp.finfo(x.dtype).tiny
+    system = prep.system
+
+    def simplified(r):
+        tol = prep.tol / jnp.maximum(prep.bn, tiny) * norm(r)
+        return norm(linear_step(s, lstate, system, -r, tol).x)
+
+    eta = jnp.clip(lin.stats["residual"] / jnp.maximum(prep.bn, tiny), 0.0, 1.0)
+    return Correction(simplified, eta.astype(x.dtype))
+
+
+def _step_status(s: Newton, pot, state: NewtonState, rn, dn, ref, floor, alpha, acc, d, length):
+    """The status after a step: converged (the tolerance, the round-off floor once a full
+    step stalls or the potential is quadratic, or a full Newton step below ``xtol``),
+    LINE_SEARCH_FAILED when no trial was accepted, else RUNNING or MAX_STEPS."""
+    k = state.k
+    # the floor only counts once a full step no longer reduces the residual (or the
+    # potential is quadratic, where one exact step is the answer)
+    stalled = ((alpha == 1.0) & (rn >= STALL * state.hist[k])) | is_quadratic(pot)
+    st = status_of(s, rn, dn, ref, k + 1, jnp.where(stalled, floor, 0.0))
+    # (a Newton step, not one the Levenberg-Marquardt shift shortened)
+    full = acc & (alpha == 1.0) & (dn == 0) & (state.lam == 0)
+    tiny_step = full & (jnp.max(jnp.abs(d)) <= s.xtol * length)
+    st = jnp.where((st == RUNNING) & tiny_step & jnp.isfinite(rn), Status.SUCCESS, st)
+    return jnp.where(acc, st, Status.LINE_SEARCH_FAILED)
 
 
 def _adapt(s: Newton, pot: Potential, state: NewtonState) -> NewtonState:
