@@ -141,6 +141,7 @@ def _dynamic_balloon(tmp_path, **pressure):
     return load_scene(d)
 
 
+@pytest.mark.extended  # about 50 P2 F-bar time steps and the static comparison (~20 s)
 def test_dynamic_balloon_ramps_its_pressure_and_settles_at_the_static_inflation(tmp_path):
     from jaxelastic.scene import run_scene
 

@@ -179,6 +179,7 @@ def test_helix_at_the_quadrature_points_has_the_prescribed_angle():
     np.testing.assert_allclose(fc, M.helix_fibres(jnp.asarray(cent))[0], atol=1e-14)
 
 
+@pytest.mark.extended  # three Guccione solves (~7 s)
 def test_params_path_ramps_the_active_tension():
     """Load stepping with ``params_path = ActiveTension.scaled``: the increment at s = 1/2
     is the solve at T_a/2, and the end the solve at T_a."""
