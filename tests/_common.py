@@ -1,8 +1,13 @@
 """Shared test data (imported by several test modules; not a test module itself)."""
 
+import importlib.util
 import json
+import sys
+from pathlib import Path
 
 from jaxelastic import materials as M
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 
 # every built-in model in every dimension its definition allows
 MODEL_DIMS = [
@@ -48,3 +53,16 @@ def scene_toml(data: dict) -> str:
             for entry in v:
                 lines += [f"[[{k}]]"] + [f"{a} = {val(b)}" for a, b in entry.items()]
     return "\n".join(lines) + "\n"
+
+
+def load_script(name: str):
+    """Import ``scripts/<name>.py`` as the module ``name`` (once per process), as running
+    it from scripts/ would: registered in ``sys.modules`` before it runs, so the reports
+    import their sibling ``_report_common`` by that name."""
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]

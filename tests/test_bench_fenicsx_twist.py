@@ -4,7 +4,6 @@ end to end on a small mesh, FEniCSx's solution agreeing with jaxelastic's."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -12,16 +11,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from _common import load_script
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "bench_fenicsx_twist.py"
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("bench_fenicsx_twist", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("bench_fenicsx_twist")
 
 
 def test_help_without_fenicsx(capsys):

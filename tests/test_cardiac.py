@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _common import load_script
 from scipy.spatial.transform import Rotation
 
 import jaxelastic as je
@@ -291,14 +292,7 @@ def test_land_problem_1_coarse():
     bottom face) on a 10 × 1 × 1 P2 mesh, κ = 1000 kPa: the deflected z of (10, 0.5, 1)
     approaches the consensus ≈ 4.15–4.17 mm from below (coarse mesh and penalty: stiffer;
     20 × 2 × 2 gives 4.07, see scripts/bench_cardiac.py)."""
-    import importlib.util
-    import pathlib
-
-    path = pathlib.Path(__file__).parents[1] / "scripts" / "bench_cardiac.py"
-    spec = importlib.util.spec_from_file_location("bench_cardiac", path)
-    assert spec is not None and spec.loader is not None
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_script("bench_cardiac")
     r = bench.beam(1, "standard", 1000.0)
     assert r["ok"], r
     assert 3.7 < r["z"] < 4.17, r

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _common import load_script
 
 import jaxelastic as je
 from jaxelastic import contact as jc
@@ -258,28 +259,13 @@ def test_scenes_build_a_contact_term_only_with_obstacles():
 
 
 # ------------------------------------------------------------------------- slow checks
-def _load_script(name: str):
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    if name not in sys.modules:
-        path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
-        spec = importlib.util.spec_from_file_location(name, path)
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
 @pytest.mark.slow
 def test_hertz_indentation_force_law():
     """F ∝ δ^{3/2} (fitted exponent within 0.05 of 1.5) and the Hertz constant on the
     graded P2 block of ``scripts/contact_hertz.py`` (L = 8R, linear elasticity, d̂ = 1e-5,
     δ_eff = δ − gap): too stiff by a margin that shrinks with refinement, within 6 % at
     n = 8 (measured: +4.7 % at n = 8, 14.7k dofs)."""
-    hz = _load_script("contact_hertz")
+    hz = load_script("contact_hertz")
     coarse, fine = hz.run(6, order=2), hz.run(8, order=2)
     for r in (coarse, fine):
         assert abs(r["exponent"] - 1.5) < 0.05 and r["min_distance"] > 0

@@ -4,13 +4,12 @@ F-bar meshes; the quadrature points are where the element puts them; the helix r
 there has the prescribed angle at each point; the active tension is ramped by the load
 factor; bad shapes and values are refused by name."""
 
-import importlib.util
 import math
-import pathlib
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _common import load_script
 
 import jaxelastic as je
 from jaxelastic import loads as L
@@ -288,12 +287,7 @@ def test_active_tension_is_a_guccione_key():
 
 
 def _bench():
-    path = pathlib.Path(__file__).parents[1] / "scripts" / "bench_cardiac.py"
-    spec = importlib.util.spec_from_file_location("bench_cardiac", path)
-    assert spec is not None and spec.loader is not None
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    return bench
+    return load_script("bench_cardiac")
 
 
 @pytest.mark.extended  # the scene (~50 s loaded) and the same problem from Python

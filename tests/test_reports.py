@@ -9,34 +9,18 @@ are ``slow``.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from _common import load_script
 
 import jaxelastic as je
 from jaxelastic import verification as bm
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
-
-
-def _load_script(name: str):
-    """Import ``scripts/<name>.py`` as the module ``name``, as running it from scripts/
-    would (the reports import their sibling ``_report_common`` by that name)."""
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-rc = _load_script("_report_common")
-acc = _load_script("report_accuracy")
-stab = _load_script("report_stability")
+rc = load_script("_report_common")
+acc = load_script("report_accuracy")
+stab = load_script("report_stability")
 
 
 def _rows(result, case, element="P1", solver=None):
@@ -123,7 +107,7 @@ def test_edge_load_is_consistent():
 def test_twist_benchmark_setup():
     """bench_solvers times the benchmark's twist; its x = 0 face gets half of the 60°
     rotation about (y, z) = (0.5, 0.5) as displacement, x = 1 is clamped."""
-    bench = _load_script("bench_solvers")
+    bench = load_script("bench_solvers")
     b = bm.twist(3)
     _, pot, bc = bench._twist_problem(3)
     assert pot.psi is b.psi and pot.mesh.n_nodes == b.mesh.n_nodes

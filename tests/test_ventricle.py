@@ -2,12 +2,11 @@
 generator against the analytic wall and cavity volumes, its surfaces, the scene fibre rule,
 the shipped ``ventricle`` scene, and (extended) the benchmark apex displacements."""
 
-import importlib.util
 import math
-import pathlib
 
 import numpy as np
 import pytest
+from _common import load_script
 
 from jaxelastic import materials as M
 from jaxelastic.materials.fibre_rules import transmural_coordinate
@@ -195,12 +194,7 @@ def test_fibre_rule_needs_a_3d_mesh():
 
 
 def _bench():
-    path = pathlib.Path(__file__).parents[1] / "scripts" / "bench_cardiac.py"
-    spec = importlib.util.spec_from_file_location("bench_cardiac", path)
-    assert spec is not None and spec.loader is not None
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    return bench
+    return load_script("bench_cardiac")
 
 
 @pytest.mark.extended  # two solves of 5 load increments (~40 s loaded)
