@@ -30,6 +30,7 @@ from .load import Scene
 __all__ = [
     "Cavities",
     "build_pressure",
+    "pressures_at",
     "pressure_schedule",
     "cavity_pressures",
     "cavity_report",
@@ -203,21 +204,25 @@ def volume_controlled_solve(built, steps: int, on_increment: Callable):
     return sol.x, stats, sol
 
 
+def pressures_at(scene: Scene, t: float) -> np.ndarray:
+    """Dynamics: the pressures ``(n_pressures,)`` [Pa] of the ``[[pressure]]`` entries at
+    time ``t`` [s], in the order of the scene's pressure term: each grows linearly until
+    its ``ramp_time``, or acts in full from t = 0."""
+    return np.array(
+        [
+            p.pressure * (1.0 if p.ramp_time is None else min(max(t, 0.0) / p.ramp_time, 1.0))
+            for p in scene.spec.pressure
+        ],
+        np.float64,
+    )
+
+
 def pressure_schedule(scene: Scene) -> Callable[[float], np.ndarray] | None:
-    """Dynamics: ``t ↦`` the pressures ``(n_pressures,)`` [Pa] of the ``[[pressure]]``
-    entries at time ``t`` [s], in the order of the scene's pressure term (each grows
-    linearly until its ``ramp_time``, or acts in full from t = 0); None when no entry has
-    a ramp (the term's own pressures at every step, a step load)."""
-    entries = scene.spec.pressure
-    if not any(p.ramp_time is not None for p in entries):
+    """``t ↦`` :func:`pressures_at` for a dynamic scene with a ``ramp_time``; None when no
+    entry has one (the term's own pressures act at every step: a step load)."""
+    if not any(p.ramp_time is not None for p in scene.spec.pressure):
         return None
-    full = np.array([p.pressure for p in entries], np.float64)
-    ramps = [p.ramp_time for p in entries]
-
-    def at(t: float) -> np.ndarray:
-        return full * np.array([1.0 if r is None else min(max(t, 0.0) / r, 1.0) for r in ramps])
-
-    return at
+    return lambda t: pressures_at(scene, t)
 
 
 def cavity_pressures(scene: Scene, cav: Cavities, entries: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ from .cavity import (
     cavity_report,
     pressure_schedule,
     pressure_volume_figure,
+    pressures_at,
     volume_controlled_solve,
 )
 from .contact import contact_report, min_gap
@@ -548,13 +549,9 @@ def _compare_static(built: Built, out: str, progress: bool, mon: _Monitor, summa
 def _dynamic_cavities(built: Built, frames: list) -> dict:
     """The cavity report of a dynamic scene over its output frames ``(t, x)``: the time,
     each cavity's pressure (its ``[[pressure]]`` entries at that time) and volume."""
-    cav, schedule = built.cavities, pressure_schedule(built.scene)
+    cav, scene = built.cavities, built.scene
     assert cav is not None  # a scene with [[cavity]]
-    full = np.array([p.pressure for p in built.scene.spec.pressure], np.float64)
-    steps = []
-    for t, x in frames:
-        entries = full if schedule is None else schedule(t)
-        steps.append((t, x, cavity_pressures(built.scene, cav, entries)))
+    steps = [(t, x, cavity_pressures(scene, cav, pressures_at(scene, t))) for t, x in frames]
     return cavity_report(cav, steps, variable="time")
 
 
